@@ -1,0 +1,239 @@
+"""The dataset contract: ``manifest.json`` plus one folder per scene (see docs/dataset.md).
+
+Everything that knows a file name inside a dataset asks this module, so the simulator, the
+validator and the data module cannot drift apart.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from odmv.rig import VIEW_NAMES, Rig
+
+FORMAT = "odmv-fpp-dataset"
+VERSION = 1
+MANIFEST = "manifest.json"
+SPLITS = ("train", "val", "test")
+IMAGE_MODES = ("full", "training")
+
+DEPTH_FILE = "depth.exr"  # channel "Z": camera-axis z in mm, finite everywhere
+LIT_FILE = "lit.exr"  # one channel per view: 1 where that projector lights the pixel, else 0
+PROJ_COORD_FILE = "projector_coord.exr"  # one channel per view: projector px, NaN where unlit
+SCENE_SPEC_FILE = "scene.json"  # what the scene was made of, enough to re-render it
+FRINGE_DIR = "fringe"
+FRINGE_CHANNEL = "Y"
+DEPTH_CHANNEL = "Z"
+
+
+class ManifestError(ValueError):
+    """A one-line error naming the manifest and the problem."""
+
+
+@dataclass(frozen=True)
+class FringeSpec:
+    """Phase-shifting sequence per projector.
+
+    ``periods_px``: fringe period in projector pixels along the phase axis, one per frequency,
+    lowest frequency first. ``steps``: phase steps per frequency (phase shift 2*pi*n/steps).
+    ``uniform``: whether a flat full-intensity image follows the sequences. ``train_frequency``
+    and ``train_step`` name the image a network sees by default (the paper: highest frequency,
+    first step).
+    """
+
+    periods_px: tuple[float, ...] = (1920.0, 240.0, 30.0)
+    steps: int = 12
+    uniform: bool = True
+    train_frequency: int = -1
+    train_step: int = 0
+
+    @property
+    def highest(self) -> int:
+        """Index of the highest-frequency (shortest-period) sequence."""
+        return min(range(len(self.periods_px)), key=lambda i: self.periods_px[i])
+
+    def resolve_frequency(self, index: int) -> int:
+        n = len(self.periods_px)
+        if not -n <= index < n:
+            raise ManifestError(f"fringe frequency index {index} out of range for {n} frequencies")
+        return index % n
+
+    @property
+    def images_per_view(self) -> int:
+        return len(self.periods_px) * self.steps + int(self.uniform)
+
+
+def fringe_name(view: str, frequency: int, step: int) -> str:
+    """File name (inside ``fringe/``) of one phase-shifted image."""
+    return f"{view}_f{frequency}_s{step:02d}.exr"
+
+
+def uniform_name(view: str) -> str:
+    return f"{view}_uniform.exr"
+
+
+@dataclass
+class Manifest:
+    """Parsed ``manifest.json``."""
+
+    root: Path
+    height_px: int
+    width_px: int
+    views: tuple[str, ...]
+    fringe: FringeSpec
+    rig: Rig
+    images: str = "full"
+    scenes: list[dict] = field(default_factory=list)
+    version: int = VERSION
+    extra: dict = field(default_factory=dict)
+
+    def scene_dir(self, scene_id: str) -> Path:
+        return self.root / "scenes" / scene_id
+
+    def fringe_files(self, scene_id: str) -> list[Path]:
+        """Every fringe image this manifest promises for one scene, in a fixed order."""
+        d = self.scene_dir(scene_id) / FRINGE_DIR
+        f = self.fringe
+        if self.images == "training":
+            fi = f.resolve_frequency(f.train_frequency)
+            return [d / fringe_name(v, fi, f.train_step) for v in self.views]
+        files = []
+        for v in self.views:
+            files += [
+                d / fringe_name(v, fi, s) for fi in range(len(f.periods_px)) for s in range(f.steps)
+            ]
+            if f.uniform:
+                files.append(d / uniform_name(v))
+        return files
+
+    def ground_truth_files(self, scene_id: str) -> list[Path]:
+        d = self.scene_dir(scene_id)
+        return [d / DEPTH_FILE, d / LIT_FILE, d / PROJ_COORD_FILE, d / SCENE_SPEC_FILE]
+
+    def to_json(self) -> dict:
+        return {
+            "format": FORMAT,
+            "version": self.version,
+            "units": {
+                "length": "mm",
+                "depth": "camera-axis z in mm",
+                "projector_coord": "projector pixels along each projector's phase_axis",
+                "fringe": "linear relative irradiance (float32), 1 = white on a unit-albedo "
+                "surface facing the projector at the reference distance",
+            },
+            "image_size": {"height_px": self.height_px, "width_px": self.width_px},
+            "views": list(self.views),
+            "fringe": asdict(self.fringe),
+            "images": self.images,
+            "rig": {
+                "spec": self.rig.to_dict(),
+                "geometry": self.rig.geometry(self.width_px, self.height_px),
+            },
+            "scenes": self.scenes,
+            **self.extra,
+        }
+
+    def write(self) -> Path:
+        """Write ``manifest.json`` atomically."""
+        path = self.root / MANIFEST
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{MANIFEST}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(self.to_json(), indent=1) + "\n")
+        os.replace(tmp, path)
+        return path
+
+
+def _require(d: dict, key: str, kind: type | tuple, path: Path):
+    if key not in d:
+        raise ManifestError(f"{path}: missing key {key!r}")
+    if not isinstance(d[key], kind):
+        raise ManifestError(f"{path}: key {key!r} has the wrong type ({type(d[key]).__name__})")
+    return d[key]
+
+
+def load_manifest(root: str | os.PathLike) -> Manifest:
+    """Read and check the structure of ``root/manifest.json`` (not the images)."""
+    root = Path(root)
+    path = root / MANIFEST
+    if not path.is_file():
+        raise ManifestError(f"{path}: no manifest (is {root} an odmv dataset folder?)")
+    try:
+        d = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ManifestError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(d, dict):
+        raise ManifestError(f"{path}: top level must be a JSON object")
+    if d.get("format") != FORMAT:
+        raise ManifestError(f"{path}: format is {d.get('format')!r}, expected {FORMAT!r}")
+    version = _require(d, "version", int, path)
+    if version != VERSION:
+        raise ManifestError(
+            f"{path}: version {version} is not supported (this odmv reads {VERSION})"
+        )
+    size = _require(d, "image_size", dict, path)
+    h, w = size.get("height_px"), size.get("width_px")
+    if not (isinstance(h, int) and isinstance(w, int) and h > 0 and w > 0):
+        raise ManifestError(f"{path}: image_size needs positive integer height_px and width_px")
+    views = _require(d, "views", list, path)
+    unknown = [v for v in views if v not in VIEW_NAMES]
+    if unknown or not views or len(set(views)) != len(views):
+        raise ManifestError(f"{path}: views {views} must be distinct names from {list(VIEW_NAMES)}")
+    fr = _require(d, "fringe", dict, path)
+    try:
+        fringe = FringeSpec(
+            periods_px=tuple(float(p) for p in fr["periods_px"]),
+            steps=int(fr["steps"]),
+            uniform=bool(fr.get("uniform", False)),
+            train_frequency=int(fr.get("train_frequency", -1)),
+            train_step=int(fr.get("train_step", 0)),
+        )
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ManifestError(f"{path}: bad fringe specification ({exc!r})") from None
+    if not fringe.periods_px or fringe.steps < 1 or not 0 <= fringe.train_step < fringe.steps:
+        raise ManifestError(f"{path}: fringe needs periods, steps >= 1 and a valid train_step")
+    fringe.resolve_frequency(fringe.train_frequency)
+    images = d.get("images", "full")
+    if images not in IMAGE_MODES:
+        raise ManifestError(f"{path}: images is {images!r}, expected one of {IMAGE_MODES}")
+    rig_d = _require(d, "rig", dict, path)
+    try:
+        rig = Rig.from_dict(rig_d.get("spec", {}))
+    except TypeError as exc:
+        raise ManifestError(f"{path}: bad rig specification ({exc})") from None
+    scenes = _require(d, "scenes", list, path)
+    seen = set()
+    for i, s in enumerate(scenes):
+        if not isinstance(s, dict) or not isinstance(s.get("id"), str) or not s["id"]:
+            raise ManifestError(f"{path}: scenes[{i}] needs a non-empty string 'id'")
+        if s["id"] in seen:
+            raise ManifestError(f"{path}: scene id {s['id']!r} appears twice")
+        seen.add(s["id"])
+        if s.get("split") is not None and s["split"] not in SPLITS:
+            raise ManifestError(
+                f"{path}: scene {s['id']!r} has split {s['split']!r}, not in {SPLITS}"
+            )
+    known = {
+        "format",
+        "version",
+        "units",
+        "image_size",
+        "views",
+        "fringe",
+        "images",
+        "rig",
+        "scenes",
+    }
+    return Manifest(
+        root=root,
+        height_px=h,
+        width_px=w,
+        views=tuple(v for v in VIEW_NAMES if v in views),
+        fringe=fringe,
+        rig=rig,
+        images=images,
+        scenes=scenes,
+        version=version,
+        extra={k: v for k, v in d.items() if k not in known},
+    )

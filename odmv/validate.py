@@ -1,0 +1,144 @@
+"""Check a dataset folder against the contract: ``python -m odmv.validate PATH [--quick]``.
+
+Prints every problem on its own line (file named) and exits 1, or prints a one-line summary and
+exits 0. Nothing on disk is modified.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from odmv.io import exr
+from odmv.io.manifest import (
+    DEPTH_CHANNEL,
+    DEPTH_FILE,
+    FRINGE_CHANNEL,
+    LIT_FILE,
+    PROJ_COORD_FILE,
+    SCENE_SPEC_FILE,
+    Manifest,
+    ManifestError,
+    load_manifest,
+)
+
+
+@dataclass
+class Report:
+    problems: list[str]
+    scenes: int = 0
+    views: int = 0
+    images: int = 0
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def summary(self, root: Path) -> str:
+        return f"{root}: ok, {self.scenes} scenes, {self.views} views, {self.images} fringe images"
+
+
+def _check_image(path: Path, channels: list[str], shape: tuple[int, int], deep: bool) -> str | None:
+    """Return a problem line, or None. ``deep`` decodes the pixels too."""
+    try:
+        found = exr.exr_channels(path)
+        missing = [c for c in channels if c not in found]
+        if missing:
+            return f"{path}: missing channel(s) {missing} (has {sorted(found)})"
+        bad = {c: found[c] for c in channels if found[c] != shape}
+        if bad:
+            return f"{path}: channel shape(s) {bad} differ from the manifest's {shape}"
+        if deep:
+            data = exr.read_exr(path, channels)
+            return _check_values(path, data)
+    except exr.ExrError as e:
+        return str(e)
+    return None
+
+
+def _check_values(path: Path, data: dict[str, np.ndarray]) -> str | None:
+    name = path.name
+    for c, a in data.items():
+        a = a.astype(np.float32)
+        if name == DEPTH_FILE and not (np.isfinite(a).all() and (a > 0).all()):
+            return f"{path}: depth must be finite and positive everywhere ({np.isnan(a).sum()} NaN)"
+        if name == LIT_FILE and not np.isin(a, (0.0, 1.0)).all():
+            return f"{path}: lit mask channel {c!r} has values other than 0 and 1"
+        if name not in (DEPTH_FILE, LIT_FILE, PROJ_COORD_FILE) and not np.isfinite(a).all():
+            return f"{path}: non-finite pixel values in channel {c!r}"
+    return None
+
+
+def validate(root: str | Path, deep: bool = True) -> Report:
+    """Check every file the manifest promises. ``deep=False`` reads headers only."""
+    root = Path(root)
+    try:
+        m: Manifest = load_manifest(root)
+    except ManifestError as e:
+        return Report([str(e)])
+    report = Report([], scenes=len(m.scenes), views=len(m.views))
+    shape = (m.height_px, m.width_px)
+    views = list(m.views)
+    if not m.scenes:
+        report.problems.append(f"{root / 'manifest.json'}: lists no scenes")
+    for scene in m.scenes:
+        sdir = m.scene_dir(scene["id"])
+        if not sdir.is_dir():
+            report.problems.append(f"{sdir}: scene folder missing")
+            continue
+        checks = [(p, [FRINGE_CHANNEL]) for p in m.fringe_files(scene["id"])]
+        report.images += len(checks)
+        checks += [(sdir / DEPTH_FILE, [DEPTH_CHANNEL]), (sdir / LIT_FILE, views)]
+        checks.append((sdir / PROJ_COORD_FILE, views))
+        for path, channels in checks:
+            problem = _check_image(path, channels, shape, deep)
+            if problem:
+                report.problems.append(problem)
+        if deep and not any(p.startswith(str(sdir)) for p in report.problems):
+            problem = _check_coords(sdir, views)
+            if problem:
+                report.problems.append(problem)
+        spec = sdir / SCENE_SPEC_FILE
+        try:
+            json.loads(spec.read_text())
+        except FileNotFoundError:
+            report.problems.append(f"{spec}: scene spec missing")
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            report.problems.append(f"{spec}: not valid JSON")
+    return report
+
+
+def _check_coords(sdir: Path, views: list[str]) -> str | None:
+    """Projector coordinates must be finite exactly where the projector lights the pixel."""
+    lit = exr.read_exr(sdir / LIT_FILE, views)
+    coord = exr.read_exr(sdir / PROJ_COORD_FILE, views)
+    for v in views:
+        if not np.array_equal(np.isfinite(coord[v]), lit[v] > 0.5):
+            return f"{sdir / PROJ_COORD_FILE}: channel {v!r} is not finite exactly on lit pixels"
+    return None
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="python -m odmv.validate", description=__doc__.splitlines()[0]
+    )
+    ap.add_argument("path", type=Path, help="dataset folder (holds manifest.json)")
+    ap.add_argument("--quick", action="store_true", help="check headers only, skip pixel values")
+    args = ap.parse_args(argv)
+    report = validate(args.path, deep=not args.quick)
+    if report.ok:
+        print(report.summary(args.path))
+        return 0
+    for line in report.problems:
+        print(line)
+    print(f"{args.path}: {len(report.problems)} problem(s)", file=sys.stderr)
+    return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
