@@ -1,0 +1,124 @@
+"""The simulate app end to end: files, determinism, resume after a kill, re-render, errors."""
+
+import filecmp
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from hydra import compose, initialize_config_dir
+
+from odmv.io.exr import read_channel
+from odmv.io.manifest import load_manifest
+from odmv.sim.scenes import SceneError
+from odmv.sim.writer import SimulationError, rerender
+from odmv.simulate import CONF_DIR, run
+from odmv.validate import validate
+
+SMALL = ["resolution=64", "progress=false", "workers=1"]
+
+
+def _cfg(out, *overrides):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose("simulate", overrides=[f"out={out}", *SMALL, *overrides])
+
+
+def _same_tree(a: Path, b: Path) -> None:
+    fa = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
+    fb = sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file())
+    assert fa == fb and fa
+    _, mismatch, errors = filecmp.cmpfiles(a, b, [str(p) for p in fa], shallow=False)
+    # the manifest names its own folder nowhere, so every byte must match
+    assert not mismatch and not errors, mismatch[:5]
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ref") / "ds"
+    assert run(_cfg(out, "scenes=4", "seed=3")) == 0
+    return out
+
+
+def test_dataset_is_complete_and_valid(reference):
+    m = load_manifest(reference)
+    assert [s["id"] for s in m.scenes] == ["000000", "000001", "000002", "000003"]
+    assert {s["family"] for s in m.scenes} <= {"primitives", "pcb", "freeform"}
+    report = validate(reference, deep=True)
+    assert report.ok and report.images == 4 * 148
+    depth = read_channel(m.scene_dir("000000") / "depth.exr", "Z")
+    assert depth.dtype == np.float32 and 135 < depth.min() and depth.max() <= 150.0 + 1e-4
+
+
+def test_same_seed_gives_identical_bytes_with_any_worker_count(reference, tmp_path):
+    out = tmp_path / "again"
+    assert run(_cfg(out, "scenes=4", "seed=3", "workers=2")) == 0
+    _same_tree(reference, out)
+
+
+def test_scene_json_re_renders_exactly(reference):
+    m = load_manifest(reference)
+    _, r = rerender(reference, "000002")
+    for name in ("right_f2_s00.exr", "up_uniform.exr"):
+        stored = read_channel(m.scene_dir("000002") / "fringe" / name, "Y")
+        assert np.array_equal(stored, r.fringes[name])
+    assert np.array_equal(read_channel(m.scene_dir("000002") / "depth.exr", "Z"), r.depth_mm)
+
+
+def test_training_mode_writes_only_the_network_image(tmp_path):
+    out = tmp_path / "train"
+    assert run(_cfg(out, "scenes=2", "images=training")) == 0
+    names = sorted(p.name for p in (out / "scenes" / "000000" / "fringe").iterdir())
+    assert names == sorted(f"{v}_f2_s00.exr" for v in ("right", "down", "left", "up"))
+    assert validate(out).ok
+
+
+def test_killed_run_resumes_to_the_same_result(tmp_path):
+    # 128 px scenes take long enough (~0.3 s each) to kill the run after the first one
+    settings = ["scenes=5", "seed=5", "resolution=128"]
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "odmv.simulate", f"out={out}", *SMALL, *settings]
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
+    )
+    deadline = time.time() + 120
+    scenes = out / "scenes"
+    while time.time() < deadline and proc.poll() is None:
+        if (
+            scenes.is_dir()
+            and len([p for p in scenes.iterdir() if not p.name.startswith(".")]) >= 1
+        ):
+            break
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    complete = [p for p in scenes.iterdir() if not p.name.startswith(".")]
+    assert 1 <= len(complete) < 5, "the run should have been killed part-way"
+    assert run(_cfg(out, *settings)) == 0
+    assert not [p for p in scenes.iterdir() if p.name.startswith(".")]
+    assert run(_cfg(tmp_path / "clean", *settings)) == 0
+    _same_tree(tmp_path / "clean", out)
+
+
+def test_other_settings_in_same_folder_are_refused(reference):
+    with pytest.raises(SimulationError, match="other settings"):
+        run(_cfg(reference, "scenes=4", "seed=4"))
+
+
+def test_mesh_folder_is_used_and_bad_mesh_named(tmp_path):
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    trimesh.creation.annulus(r_min=1, r_max=3, height=4).export(meshes / "ring.stl")
+    out = tmp_path / "free"
+    assert run(_cfg(out, "scenes=3", "family=freeform", f"mesh_dir={meshes}")) == 0
+    specs = [(out / "scenes" / f"00000{i}" / "scene.json").read_text() for i in range(3)]
+    assert any("ring.stl" in s for s in specs)
+    bad = meshes / "broken.stl"
+    bad.write_text("solid nothing\nthis is not a facet\n")
+    with pytest.raises(SceneError, match="broken.stl: cannot read mesh") as e:
+        run(_cfg(tmp_path / "bad", "scenes=8", "family=freeform", f"mesh_dir={meshes}"))
+    assert "\n" not in str(e.value)
