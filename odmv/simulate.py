@@ -11,9 +11,6 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from odmv.io.manifest import FringeSpec
-from odmv.rig import Rig
-from odmv.sim.render import RenderConfig
 from odmv.sim.scenes import SceneError
 from odmv.sim.writer import SimSettings, SimulationError, simulate
 from odmv.validate import validate
@@ -23,34 +20,7 @@ CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
 
 def settings_from_config(cfg: DictConfig) -> SimSettings:
     """Turn the ``simulate`` config into :class:`SimSettings`."""
-    c = OmegaConf.to_container(cfg, resolve=True)
-    res = c["resolution"]
-    h, w = (res, res) if isinstance(res, int) else tuple(res)
-    fr = c["fringe"]
-    return SimSettings(
-        out=Path(c["out"]),
-        scenes=int(c["scenes"]),
-        family=c["family"],
-        height_px=int(h),
-        width_px=int(w),
-        seed=int(c["seed"]),
-        images=c["images"],
-        views=tuple(c["views"]),
-        mix=dict(c["mix"]),
-        mesh_dir=c["mesh_dir"],
-        splits=c["splits"],
-        fringe=FringeSpec(
-            tuple(float(p) for p in fr["periods_px"]),
-            int(fr["steps"]),
-            bool(fr["uniform"]),
-            int(fr["train_frequency"]),
-            int(fr["train_step"]),
-        ),
-        render=RenderConfig(**c["render"]),
-        rig=Rig.from_dict(c["rig"]),
-        compression=c["compression"],
-        fringe_dtype=c["fringe_dtype"],
-    )
+    return SimSettings.from_dict(OmegaConf.to_container(cfg, resolve=True))
 
 
 def run(cfg: DictConfig) -> int:

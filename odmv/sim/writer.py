@@ -67,6 +67,34 @@ class SimSettings:
     compression: str = "zstd"
     fringe_dtype: str = "float32"
 
+    @classmethod
+    def from_dict(cls, c: dict) -> SimSettings:
+        """Settings from a plain dict shaped like conf/simulate.yaml; absent keys keep defaults.
+        Keys that steer a run rather than its content (workers, validate, progress) are ignored."""
+        kw: dict = {"out": Path(c["out"])}
+        res = c.get("resolution")
+        if res is not None:
+            kw["height_px"], kw["width_px"] = (res, res) if isinstance(res, int) else tuple(res)
+        for key in ("scenes", "seed"):
+            if key in c:
+                kw[key] = int(c[key])
+        for key in ("family", "images", "mesh_dir", "splits", "compression", "fringe_dtype"):
+            if key in c:
+                kw[key] = c[key]
+        if "views" in c:
+            kw["views"] = tuple(c["views"])
+        if "mix" in c:
+            kw["mix"] = dict(c["mix"])
+        if "fringe" in c:
+            fr = {**asdict(FringeSpec()), **c["fringe"]}
+            fr["periods_px"] = tuple(float(p) for p in fr["periods_px"])
+            kw["fringe"] = FringeSpec(**fr)
+        if "render" in c:
+            kw["render"] = RenderConfig(**c["render"])
+        if "rig" in c:
+            kw["rig"] = Rig.from_dict(c["rig"])
+        return cls(**kw)
+
     def content_key(self) -> dict:
         """The settings that change pixels; a resumed run must match them."""
         return {

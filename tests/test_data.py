@@ -1,0 +1,188 @@
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+import odmv.config  # noqa: F401  (registers the resolvers the configs use)
+from odmv.data import DataError, FPPDataModule
+from odmv.io.exr import read_channel, write_exr
+from odmv.rig import VIEW_SETS
+from odmv.simulate import CONF_DIR
+
+
+def _dm(root, tmp_path, **kw):
+    kw = {
+        "views": VIEW_SETS[4],
+        "resolution": 64,
+        "cache": False,
+        "progress": False,
+        "cache_dir": str(tmp_path / "cache"),
+        **kw,
+    }
+    dm = FPPDataModule(str(root), **kw)
+    dm.prepare_data()
+    dm.setup()
+    return dm
+
+
+def _snapshot(root):
+    return {p: (p.stat().st_size, p.stat().st_mtime_ns) for p in root.rglob("*")}
+
+
+@pytest.mark.parametrize("n_views", [1, 2, 3, 4])
+def test_sample_shapes_ranges_and_view_order(tiny_dataset, tmp_path, n_views):
+    views = VIEW_SETS[n_views]
+    dm = _dm(tiny_dataset, tmp_path, views=views)
+    s = dm.datasets["train"][0]
+    assert s["fringes"].shape == (n_views, 64, 64) and s["fringes"].dtype == torch.float32
+    assert -1 <= s["fringes"].min() and s["fringes"].max() <= 1
+    assert s["depth_mm"].shape == s["valid"].shape == (1, 64, 64)
+    assert s["lit"].shape == (n_views, 64, 64) and set(s["lit"].unique().tolist()) <= {0.0, 1.0}
+    assert 130 < s["depth_mm"].min() and s["depth_mm"].max() <= 150.0 + 1e-4
+    assert torch.allclose(dm.norm.depth_mm(s["depth"]), s["depth_mm"])
+    scene = dm.manifest.scene_dir(s["scene_id"])
+    for k, v in enumerate(views):  # channel k is view k in canonical order
+        raw = read_channel(scene / "fringe" / f"{v}_f2_s00.exr", "Y")
+        assert torch.equal(s["fringes"][k], torch.from_numpy(2 * np.clip(raw, 0, 1) - 1))
+
+
+def test_downsampling_averages_images_and_never_invents_depth(tiny_dataset, tmp_path):
+    dm = _dm(tiny_dataset, tmp_path, resolution=32)
+    s = dm.datasets["train"][0]
+    scene = dm.manifest.scene_dir(s["scene_id"])
+    raw = read_channel(scene / "fringe" / "right_f2_s00.exr", "Y")
+    block_mean = raw.reshape(32, 2, 32, 2).mean((1, 3))
+    np.testing.assert_allclose((s["fringes"][0].numpy() + 1) / 2, block_mean, atol=1e-6)
+    depth = read_channel(scene / "depth.exr", "Z")
+    # each output depth is the input sample nearest the output pixel centre
+    assert np.array_equal(s["depth_mm"][0].numpy(), depth[1::2, 1::2])
+
+
+def test_split_is_disjoint_deterministic_and_saved(tiny_dataset, tmp_path):
+    dm = _dm(tiny_dataset, tmp_path)
+    labels = {s["id"]: s["split"] for s in dm.manifest.scenes}
+    for name, ids in dm.splits.items():
+        assert all(labels[i] == name for i in ids)  # the manifest's labels win
+    path = dm.save_split(tmp_path / "run" / "split.json")
+    assert json.loads(path.read_text())["test"] == dm.splits["test"]
+
+    from odmv.data.dataset import split_scenes
+
+    for s in dm.manifest.scenes:
+        s["split"] = None
+    a = split_scenes(dm.manifest, {"train": 0.8, "val": 0.1, "test": 0.1}, seed=0)
+    b = split_scenes(dm.manifest, {"train": 0.8, "val": 0.1, "test": 0.1}, seed=0)
+    c = split_scenes(dm.manifest, {"train": 0.8, "val": 0.1, "test": 0.1}, seed=1)
+    assert a == b and a != c
+    assert [len(a[k]) for k in ("train", "val", "test")] == [8, 1, 1]
+    everything = a["train"] + a["val"] + a["test"]
+    assert sorted(everything) == sorted(labels) and len(set(everything)) == 10
+
+
+def test_cache_gives_identical_tensors_and_rebuilds_on_change(dataset_copy, tmp_path):
+    plain = _dm(dataset_copy, tmp_path, views=VIEW_SETS[3], resolution=32)
+    cached = _dm(dataset_copy, tmp_path, views=VIEW_SETS[3], resolution=32, cache=True)
+    for split in ("train", "val", "test"):
+        for i in range(len(plain.datasets[split])):
+            a, b = plain.datasets[split][i], cached.datasets[split][i]
+            for k in ("fringes", "depth", "depth_mm", "lit", "valid"):
+                assert torch.equal(a[k], b[k]), (split, i, k)
+    folders = sorted(p.name for p in (tmp_path / "cache").iterdir())
+    assert len(folders) == 3
+    # rewriting a file the train split reads changes the fingerprint: a new cache is built
+    sid = plain.splits["train"][0]
+    old = cached.datasets["train"][0]["depth_mm"]
+    target = plain.manifest.scene_dir(sid) / "depth.exr"
+    write_exr(target, {"Z": read_channel(target, "Z") - 1.0})
+    assert torch.equal(cached.datasets["train"][0]["depth_mm"], old)  # the old cache is frozen
+    again = _dm(dataset_copy, tmp_path, views=VIEW_SETS[3], resolution=32, cache=True)
+    assert len(list((tmp_path / "cache").iterdir())) == 4
+    assert torch.equal(again.datasets["train"][0]["depth_mm"], old - 1.0)
+
+
+def test_reading_never_modifies_the_dataset(tiny_dataset, tmp_path):
+    before = _snapshot(tiny_dataset)
+    dm = _dm(tiny_dataset, tmp_path, cache=True)
+    for batch in dm.train_dataloader():
+        assert batch["fringes"].shape[1:] == (4, 64, 64)
+    assert _snapshot(tiny_dataset) == before
+
+
+def test_full_stacks_and_phase_on_request(tiny_dataset, tmp_path):
+    dm = _dm(tiny_dataset, tmp_path, views=VIEW_SETS[2], with_stacks=True)
+    s = dm.datasets["val"][0]
+    assert s["fringe_stack"].shape == (2, 36, 64, 64)
+    assert torch.equal(s["fringe_stack"][:, 24], s["fringes"])  # f2 s00 = the network image
+    lit = s["lit"].bool()
+    assert torch.isfinite(s["projector_coord"][lit]).all()
+    assert torch.isnan(s["projector_coord"][~lit]).all()
+
+
+def _damage_message(root, tmp_path):
+    with pytest.raises(DataError) as e:
+        _dm(root, tmp_path)
+    msg = str(e.value)
+    assert "\n" not in msg
+    return msg
+
+
+def test_bad_inputs_fail_at_setup_with_one_line(dataset_copy, tmp_path):
+    scene = dataset_copy / "scenes" / "000003"
+    img = scene / "fringe" / "left_f2_s00.exr"
+    saved = img.read_bytes()
+    img.unlink()
+    assert _damage_message(dataset_copy, tmp_path) == f"{img}: no such file"
+    img.write_bytes(saved[:300])
+    assert _damage_message(dataset_copy, tmp_path).startswith(f"{img}: ")
+    img.write_bytes(saved)
+    depth_path = scene / "depth.exr"
+    depth = read_channel(depth_path, "Z")
+    write_exr(depth_path, {"Z": depth[:32]})
+    assert "differs from the manifest's (64, 64)" in _damage_message(dataset_copy, tmp_path)
+    nan_depth = depth.copy()
+    nan_depth[5, 5] = np.nan
+    write_exr(depth_path, {"Z": nan_depth})
+    assert _damage_message(dataset_copy, tmp_path) == f"{depth_path}: 1 non-finite depth values"
+    write_exr(depth_path, {"Z": depth})
+    assert _dm(dataset_copy, tmp_path).datasets["train"]  # repaired: fine again
+
+
+def test_bad_settings_name_the_key(tiny_dataset, tmp_path):
+    with pytest.raises(DataError, match=r"^views: unknown view name"):
+        _dm(tiny_dataset, tmp_path, views=["right", "front"])
+    with pytest.raises(
+        DataError, match=r"^data.resolution: 60x60 must be positive multiples of 16"
+    ):
+        _dm(tiny_dataset, tmp_path, resolution=60)
+    with pytest.raises(DataError, match=r"nothing/manifest.json: no dataset here"):
+        _dm(tmp_path / "nothing", tmp_path, simulate=None)
+    os.makedirs(tmp_path / "empty")
+    with pytest.raises(DataError, match=r"empty/manifest.json: no manifest"):
+        FPPDataModule(str(tmp_path / "empty"), simulate=None).setup()
+
+
+def test_synthetic_default_renders_when_missing(tmp_path):
+    root = tmp_path / "synthetic"
+    sim = {"scenes": 3, "resolution": 64, "images": "training", "workers": 1, "splits": None}
+    dm = _dm(root, tmp_path, simulate=sim, split_fractions={"train": 1, "val": 1, "test": 1})
+    assert (root / "manifest.json").is_file()
+    assert [len(dm.splits[k]) for k in ("train", "val", "test")] == [1, 1, 1]
+    assert dm.datasets["test"][0]["fringes"].shape == (4, 64, 64)
+
+
+def test_hydra_groups_select_views_and_data(tmp_path):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose("train", overrides=["views=3", "data=exr", f"root={tmp_path}"])
+        assert list(cfg.data.views) == ["right", "left", "up"]
+        assert cfg.data.root == str(tmp_path) and cfg.data.simulate is None
+        cfg = compose("train", overrides=["views=2"])
+        assert list(cfg.data.views) == ["right", "up"]
+        assert cfg.data.simulate.images == "training"
+        cfg = compose("train", overrides=["views=[up,left]"])
+        assert list(cfg.data.views) == ["left", "up"]
+        cfg = compose("train", overrides=["views=5"])
+        with pytest.raises(Exception, match="views=5: use 1, 2, 3 or 4"):
+            list(cfg.data.views)
