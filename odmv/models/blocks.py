@@ -1,0 +1,147 @@
+"""Building blocks shared by the networks: 2D/3D conv blocks, residual blocks, attention gates,
+3D ASPP, the occlusion detector and occlusion-aware fusion.
+
+3D tensors are B x C x S x H x W: the view axis S is the depth axis of every 3D convolution, and
+spatial downsampling never touches it.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+
+def conv_bn_act(
+    cin: int, cout: int, kernel=3, stride=1, dilation=1, dims: int = 3, act: bool = True
+) -> nn.Sequential:
+    """Convolution (same padding), batch norm and ReLU, in 2D or 3D."""
+    Conv, Norm = (nn.Conv3d, nn.BatchNorm3d) if dims == 3 else (nn.Conv2d, nn.BatchNorm2d)
+    k = (kernel,) * dims if isinstance(kernel, int) else tuple(kernel)
+    d = (dilation,) * dims if isinstance(dilation, int) else tuple(dilation)
+    pad = tuple(dd * (kk // 2) for kk, dd in zip(k, d, strict=True))
+    layers = [Conv(cin, cout, k, stride=stride, padding=pad, dilation=d, bias=False), Norm(cout)]
+    if act:
+        layers.append(nn.ReLU(inplace=True))
+    return nn.Sequential(*layers)
+
+
+class PlainBlock3d(nn.Sequential):
+    """Two 3x3x3 conv-BN-ReLU layers: the vanilla 3D U-Net block."""
+
+    def __init__(self, cin: int, cout: int, n_layers: int = 2):
+        super().__init__(*[conv_bn_act(cin if i == 0 else cout, cout) for i in range(n_layers)])
+
+
+class ResBlock3d(nn.Module):
+    """Pre-addition residual block: conv-BN-ReLU, conv-BN, plus identity (1x1x1 if widths
+    differ), then ReLU."""
+
+    def __init__(self, cin: int, cout: int):
+        super().__init__()
+        self.body = nn.Sequential(conv_bn_act(cin, cout), conv_bn_act(cout, cout, act=False))
+        self.skip = nn.Identity() if cin == cout else conv_bn_act(cin, cout, kernel=1, act=False)
+
+    def forward(self, x):
+        return F.relu(self.body(x) + self.skip(x), inplace=True)
+
+
+def stage3d(cin: int, cout: int, n_blocks: int, residual: bool) -> nn.Sequential:
+    """A stage of ``n_blocks`` residual blocks, or one plain double-conv block."""
+    if not residual:
+        return nn.Sequential(PlainBlock3d(cin, cout, n_layers=max(2, n_blocks)))
+    return nn.Sequential(*[ResBlock3d(cin if i == 0 else cout, cout) for i in range(n_blocks)])
+
+
+class AttentionGate3d(nn.Module):
+    """Additive attention gate (Oktay et al.): a coarser gating signal g decides, per voxel,
+    how much of the skip features x pass."""
+
+    def __init__(self, x_ch: int, g_ch: int, inter_ch: int):
+        super().__init__()
+        self.wx = nn.Conv3d(x_ch, inter_ch, 1, bias=False)
+        self.wg = nn.Conv3d(g_ch, inter_ch, 1, bias=True)
+        self.psi = nn.Sequential(nn.Conv3d(inter_ch, 1, 1), nn.Sigmoid())
+
+    def forward(self, x, g):
+        g = F.interpolate(g, size=x.shape[2:], mode="trilinear", align_corners=False)
+        return x * self.psi(F.relu(self.wx(x) + self.wg(g), inplace=True))
+
+
+class ASPP3d(nn.Module):
+    """3D atrous spatial pyramid pooling: a 1x1x1 branch, 3x3x3 branches dilated in space
+    only (rates), image-level pooling, concatenated and projected. Keeps the resolution."""
+
+    def __init__(self, cin: int, cout: int, rates=(2, 4, 6)):
+        super().__init__()
+        self.branches = nn.ModuleList([conv_bn_act(cin, cout, kernel=1)])
+        self.branches.extend(conv_bn_act(cin, cout, dilation=(1, r, r)) for r in rates)
+        self.pool = nn.Sequential(nn.AdaptiveAvgPool3d(1), nn.Conv3d(cin, cout, 1), nn.ReLU())
+        self.project = conv_bn_act(cout * (len(rates) + 2), cout, kernel=1)
+
+    def forward(self, x):
+        feats = [b(x) for b in self.branches]
+        feats.append(self.pool(x).expand(-1, -1, *x.shape[2:]))
+        return self.project(torch.cat(feats, 1))
+
+
+class OcclusionDetector(nn.Module):
+    """Lightweight per-view occlusion mask from 3D features: depthwise-separable 3D convs
+    (depthwise 3x3x3 + pointwise) ending in a sigmoid, B x C x S x h x w -> B x 1 x S x h x w."""
+
+    def __init__(self, ch: int, hidden: int | None = None):
+        super().__init__()
+        hidden = hidden or max(8, ch // 4)
+        self.net = nn.Sequential(
+            nn.Conv3d(ch, ch, 3, padding=1, groups=ch, bias=False),
+            nn.Conv3d(ch, hidden, 1, bias=False),
+            nn.BatchNorm3d(hidden),
+            nn.ReLU(inplace=True),
+            nn.Conv3d(hidden, hidden, 3, padding=1, groups=hidden, bias=False),
+            nn.Conv3d(hidden, 1, 1),
+        )
+
+    def forward(self, x):
+        return torch.sigmoid(self.net(x))
+
+
+class OcclusionAwareFusion(nn.Module):
+    """3D features -> 2D map by attention-weighted aggregation over the view axis.
+
+    Channel-view attention (a shared MLP on average- and max-pooled spatial statistics, one
+    weight per channel and view) and spatial attention (a 3D conv on channel-pooled maps, one
+    logit per view and pixel) re-weight the features; the occlusion mask, when given, scales
+    the view weights, so views the OCD finds unlit contribute less. Views are then combined by
+    a softmax over S of the spatial logits (plus log-mask), i.e. a per-pixel convex blend.
+    """
+
+    def __init__(self, ch: int, reduction: int = 8):
+        super().__init__()
+        hidden = max(4, ch // reduction)
+        self.mlp = nn.Sequential(
+            nn.Linear(ch, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, ch)
+        )
+        self.spatial = nn.Conv3d(2, 1, (3, 7, 7), padding=(1, 3, 3))
+
+    def forward(self, x, mask=None):
+        # channel-view attention: B x C x S weights
+        avg = x.mean((3, 4)).transpose(1, 2)  # B x S x C
+        mx = x.amax((3, 4)).transpose(1, 2)
+        cv = torch.sigmoid(self.mlp(avg) + self.mlp(mx)).transpose(1, 2)[..., None, None]
+        x = x * cv
+        # spatial attention over views: B x 1 x S x h x w logits
+        pooled = torch.cat([x.mean(1, keepdim=True), x.amax(1, keepdim=True)], 1)
+        logits = self.spatial(pooled)
+        x = x * torch.sigmoid(logits)
+        if mask is not None:
+            logits = logits + torch.log(mask.clamp_min(1e-4))
+        weights = torch.softmax(logits, dim=2)
+        return (x * weights).sum(2)
+
+
+class RegressionHead(nn.Sequential):
+    """2D head: conv-BN-ReLU then a linear 1x1 conv to one channel."""
+
+    def __init__(self, cin: int, hidden: int | None = None, cout: int = 1):
+        hidden = hidden or max(8, cin // 2)
+        super().__init__(conv_bn_act(cin, hidden, dims=2), nn.Conv2d(hidden, cout, 1))

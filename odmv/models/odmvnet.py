@@ -1,0 +1,210 @@
+"""ODMV-Net: multi-view fringe images -> depth, with occlusion detection and view reconstruction.
+
+Input B x S x H x W normalized fringes (S views, H and W multiples of 16). Inside, features form
+a 3D volume B x C x S x h x w whose view axis is the depth axis of the 3D convolutions.
+
+Choices where the paper (Sec. II.A, Figs. 1-2) is silent, as implemented here:
+- Residual View Encoder: the per-view strided 2D convolutions share weights (the paper's "hard
+  parameter sharing"; the net then takes any S and any view order) and use stride 1, so the Main
+  output sits at full resolution; two anisotropic (3,1,1) convolutions mix views, and a residual
+  connection adds the stacked per-view features back. With ``rve`` off, a plain 3x3x3 conv stem.
+- Backbone: four encoder stages (full, 1/2, 1/4, 1/8 resolution) of ``blocks`` 3D residual blocks,
+  max-pooling (1,2,2) between them, a bottleneck at 1/16, and a mirrored decoder with transposed
+  (1,2,2) convolutions. Without ``residual``, stages are vanilla double conv-BN-ReLU blocks.
+- 3D ASPP at the bottleneck replaces the second residual block (rates 2, 4, 6 in space, 1 across
+  views, plus image pooling), as Table I's note says ASPP replaces intermediate convolutions.
+- Attention gates (Oktay et al.) on every skip, gated by the coarser decoder features.
+- OCD: one lightweight depthwise-separable head per skip scale predicts a soft per-view mask
+  (B x 1 x S x h x w) from the encoder features and multiplies that skip before it is gated.
+- OAF at Main (1/1), Aux1 (1/2) and Aux2 (1/4): channel-view and spatial attention, then a
+  softmax-over-views blend in which the OCD mask lowers the weight of views it finds occluded;
+  scale-specific 2D regression heads follow. Without ``ocd_oaf``: plain mean over views.
+- SSVR: a 3D conv head on the final decoder stage gives one map per view through a Tanh.
+- Deep supervision (Main/Aux1/Aux2) is part of every ablation row: Table I varies modules, not
+  the training protocol.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from torch.utils.checkpoint import checkpoint
+
+from odmv.models.blocks import (
+    ASPP3d,
+    AttentionGate3d,
+    OcclusionAwareFusion,
+    OcclusionDetector,
+    RegressionHead,
+    ResBlock3d,
+    conv_bn_act,
+    stage3d,
+)
+
+LEVELS = 4  # encoder stages; the bottleneck sits at 1 / 2**LEVELS
+
+
+#: Table I rows: each adds to the previous one.
+ABLATION_ROWS: dict[str, dict[str, bool]] = {
+    "baseline": dict(
+        residual=False, attention_gates=False, aspp=False, rve=False, ocd_oaf=False, ssvr=False
+    ),
+    "rb_ag": dict(
+        residual=True, attention_gates=True, aspp=False, rve=False, ocd_oaf=False, ssvr=False
+    ),
+    "aspp": dict(
+        residual=True, attention_gates=True, aspp=True, rve=False, ocd_oaf=False, ssvr=False
+    ),
+    "rve": dict(
+        residual=True, attention_gates=True, aspp=True, rve=True, ocd_oaf=False, ssvr=False
+    ),
+    "ocd_oaf": dict(
+        residual=True, attention_gates=True, aspp=True, rve=True, ocd_oaf=True, ssvr=False
+    ),
+    "multitask": dict(
+        residual=True, attention_gates=True, aspp=True, rve=True, ocd_oaf=True, ssvr=True
+    ),
+}
+
+
+class ResidualViewEncoder(nn.Module):
+    """Per-view 2D features (shared weights), stacked into a volume, refined across views."""
+
+    def __init__(self, cout: int, stride: int = 1):
+        super().__init__()
+        self.per_view = nn.Sequential(
+            conv_bn_act(1, cout, stride=stride, dims=2), conv_bn_act(cout, cout, dims=2)
+        )
+        self.cross_view = nn.Sequential(
+            conv_bn_act(cout, cout, kernel=(3, 1, 1)),
+            conv_bn_act(cout, cout, kernel=(3, 1, 1), act=False),
+        )
+
+    def forward(self, x):  # B x S x H x W
+        b, s, h, w = x.shape
+        f = self.per_view(x.reshape(b * s, 1, h, w))
+        f = f.reshape(b, s, *f.shape[1:]).transpose(1, 2)  # B x C x S x h x w
+        return F.relu(f + self.cross_view(f), inplace=True)
+
+
+class ODMVNet(nn.Module):
+    """See the module docstring. ``ablation`` names a Table I row (:data:`ABLATION_ROWS`);
+    each switch left None follows that row: ``residual`` and ``attention_gates`` ("+RB&AG"),
+    ``aspp``, ``rve``, ``ocd_oaf``, ``ssvr`` ("+Multi-task")."""
+
+    def __init__(
+        self,
+        base_width: int = 46,
+        blocks: int = 2,
+        ablation: str = "multitask",
+        residual: bool | None = None,
+        attention_gates: bool | None = None,
+        aspp: bool | None = None,
+        rve: bool | None = None,
+        ocd_oaf: bool | None = None,
+        ssvr: bool | None = None,
+        aspp_rates: tuple[int, ...] = (2, 4, 6),
+        activation_checkpointing: bool = False,
+    ):
+        super().__init__()
+        if ablation not in ABLATION_ROWS:
+            raise ValueError(f"ablation {ablation!r} unknown; choose from {list(ABLATION_ROWS)}")
+        given = dict(
+            residual=residual,
+            attention_gates=attention_gates,
+            aspp=aspp,
+            rve=rve,
+            ocd_oaf=ocd_oaf,
+            ssvr=ssvr,
+        )
+        flags = {k: ABLATION_ROWS[ablation][k] if v is None else bool(v) for k, v in given.items()}
+        residual, attention_gates, aspp = flags["residual"], flags["attention_gates"], flags["aspp"]
+        rve, ocd_oaf, ssvr = flags["rve"], flags["ocd_oaf"], flags["ssvr"]
+        w = [base_width * 2**i for i in range(LEVELS + 1)]
+        self.widths = w
+        self.flags = dict(
+            residual=residual,
+            attention_gates=attention_gates,
+            aspp=aspp,
+            rve=rve,
+            ocd_oaf=ocd_oaf,
+            ssvr=ssvr,
+        )
+        self.checkpointing = activation_checkpointing
+        self.stem = ResidualViewEncoder(w[0]) if rve else conv_bn_act(1, w[0])
+        self.encoder = nn.ModuleList(
+            stage3d(w[max(i - 1, 0)], w[i], blocks, residual) for i in range(LEVELS)
+        )
+        self.pool = nn.MaxPool3d((1, 2, 2))
+        if aspp:
+            first = ResBlock3d(w[3], w[4]) if residual else conv_bn_act(w[3], w[4])
+            self.bottleneck = nn.Sequential(first, ASPP3d(w[4], w[4], aspp_rates))
+        else:
+            self.bottleneck = stage3d(w[3], w[4], blocks, residual)
+        self.up = nn.ModuleList(
+            nn.ConvTranspose3d(w[i + 1], w[i], (1, 2, 2), stride=(1, 2, 2)) for i in range(LEVELS)
+        )
+        levels = range(LEVELS)
+        self.decoder = nn.ModuleList(stage3d(2 * w[i], w[i], blocks, residual) for i in levels)
+        self.gates = (
+            nn.ModuleList(AttentionGate3d(w[i], w[i + 1], max(4, w[i] // 2)) for i in levels)
+            if attention_gates
+            else None
+        )
+        self.ocd = nn.ModuleList(OcclusionDetector(w[i]) for i in levels) if ocd_oaf else None
+        # output heads at Main (level 0), Aux1 (level 1), Aux2 (level 2)
+        heads = range(3)
+        self.fusion = nn.ModuleList(OcclusionAwareFusion(w[i]) for i in heads) if ocd_oaf else None
+        self.heads = nn.ModuleList(RegressionHead(w[i]) for i in heads)
+        self.ssvr = (
+            nn.Sequential(conv_bn_act(w[0], w[0] // 2), nn.Conv3d(w[0] // 2, 1, 1))
+            if ssvr
+            else None
+        )
+
+    def _run(self, module, *args):
+        if self.checkpointing and self.training and torch.is_grad_enabled():
+            return checkpoint(module, *args, use_reentrant=False)
+        return module(*args)
+
+    def forward(self, x: torch.Tensor) -> dict:
+        if x.ndim != 4:
+            raise ValueError(f"ODMVNet expects B x S x H x W fringes, got shape {tuple(x.shape)}")
+        b, s, h, wd = x.shape
+        if h % 2**LEVELS or wd % 2**LEVELS:
+            raise ValueError(f"ODMVNet needs H and W divisible by {2**LEVELS}, got {h}x{wd}")
+        f = self.stem(x) if self.flags["rve"] else self.stem(x[:, None])
+        skips = []
+        for i, stage in enumerate(self.encoder):
+            f = self._run(stage, f if i == 0 else self.pool(f))
+            skips.append(f)
+        f = self._run(self.bottleneck, self.pool(f))
+        masks: list[torch.Tensor | None] = [None] * LEVELS
+        outs = {}
+        for i in reversed(range(LEVELS)):
+            skip = skips[i]
+            if self.ocd is not None:
+                masks[i] = self.ocd[i](skip)
+                skip = skip * masks[i]
+            if self.gates is not None:
+                skip = self.gates[i](skip, f)
+            f = self._run(self.decoder[i], torch.cat([self.up[i](f), skip], 1))
+            if i < 3:
+                fused = self.fusion[i](f, masks[i]) if self.fusion is not None else f.mean(2)
+                outs[i] = self.heads[i](fused)
+        result = {"depth": outs[0], "aux": [outs[1], outs[2]]}
+        if self.ssvr is not None:
+            result["views"] = torch.tanh(self.ssvr(f)[:, 0])
+        if self.ocd is not None:
+            result["occlusion"] = masks
+        return result
+
+
+def count_parameters(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())
+
+
+def parameter_breakdown(net: ODMVNet) -> dict[str, int]:
+    """Parameters per top-level module, in construction order."""
+    return {name: count_parameters(m) for name, m in net.named_children()}

@@ -1,0 +1,95 @@
+import pytest
+import torch
+
+from odmv.models import ABLATION_ROWS, ODMVNet, count_parameters
+from odmv.models.blocks import ASPP3d, AttentionGate3d, OcclusionDetector, ResBlock3d
+from odmv.models.odmvnet import ResidualViewEncoder
+
+PAPER_PARAMETERS = 112_560_408
+
+
+def _tiny(**kw):
+    torch.manual_seed(0)
+    return ODMVNet(base_width=4, blocks=1, **kw)
+
+
+@pytest.mark.parametrize("views", [1, 2, 3, 4])
+@pytest.mark.parametrize("hw", [(32, 32), (32, 48)])
+def test_output_shapes_and_ranges(views, hw):
+    h, w = hw
+    net = _tiny().eval()
+    x = torch.rand(2, views, h, w) * 2 - 1
+    with torch.no_grad():
+        out = net(x)
+    assert out["depth"].shape == (2, 1, h, w)
+    assert [a.shape for a in out["aux"]] == [(2, 1, h // 2, w // 2), (2, 1, h // 4, w // 4)]
+    assert out["views"].shape == (2, views, h, w)
+    assert out["views"].abs().max() < 1
+    scales = [(h >> i, w >> i) for i in range(4)]
+    assert [m.shape for m in out["occlusion"]] == [(2, 1, views, a, b) for a, b in scales]
+    for m in out["occlusion"]:
+        assert 0 < m.min() and m.max() < 1
+
+
+def test_every_parameter_gets_a_gradient():
+    net = _tiny().train()
+    out = net(torch.rand(2, 4, 32, 32) * 2 - 1)
+    loss = out["depth"].mean() + sum(a.mean() for a in out["aux"]) + out["views"].pow(2).mean()
+    loss = loss + sum(m.mean() for m in out["occlusion"])
+    loss.backward()
+    missing = [n for n, p in net.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0]
+    assert not missing, missing
+
+
+def _has(net, kind):
+    return any(isinstance(m, kind) for m in net.modules())
+
+
+def test_ablation_rows_add_modules_in_order():
+    counts = []
+    for row in ABLATION_ROWS:
+        net = _tiny(ablation=row).train()
+        out = net(torch.rand(1, 3, 32, 32) * 2 - 1)
+        (out["depth"].mean() + sum(a.mean() for a in out["aux"])).backward()
+        flags = ABLATION_ROWS[row]
+        assert _has(net, ResBlock3d) == flags["residual"]
+        assert _has(net, AttentionGate3d) == flags["attention_gates"]
+        assert _has(net, ASPP3d) == flags["aspp"]
+        assert _has(net, ResidualViewEncoder) == flags["rve"]
+        assert _has(net, OcclusionDetector) == flags["ocd_oaf"]
+        assert ("occlusion" in out) == flags["ocd_oaf"]
+        assert ("views" in out) == flags["ssvr"]
+        counts.append(count_parameters(net))
+    assert counts == sorted(counts) and len(set(counts)) == len(counts), counts
+
+
+def test_a_switch_overrides_the_row():
+    full, no_aspp = _tiny(), _tiny(aspp=False)
+    assert _has(full, ASPP3d) and not _has(no_aspp, ASPP3d)
+    assert count_parameters(no_aspp) < count_parameters(full)
+    with pytest.raises(ValueError, match="ablation 'nope' unknown"):
+        _tiny(ablation="nope")
+
+
+def test_paper_preset_parameter_count():
+    with torch.device("meta"):
+        n = count_parameters(ODMVNet())
+    assert abs(n / PAPER_PARAMETERS - 1) < 0.03, n
+
+
+def test_bad_input_sizes_are_refused():
+    with pytest.raises(ValueError, match="divisible by 16"):
+        _tiny()(torch.zeros(1, 4, 40, 32))
+    with pytest.raises(ValueError, match="B x S x H x W"):
+        _tiny()(torch.zeros(1, 32, 32))
+
+
+def test_activation_checkpointing_gives_the_same_gradients():
+    torch.manual_seed(0)
+    x = torch.rand(1, 2, 32, 32)
+    grads = []
+    for ckpt in (False, True):
+        net = _tiny(activation_checkpointing=ckpt).train()
+        net(x)["depth"].sum().backward()
+        grads.append(torch.cat([p.grad.flatten() for p in net.parameters() if p.grad is not None]))
+    torch.testing.assert_close(grads[0], grads[1])
