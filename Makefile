@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 # resolving a multi-GB CUDA build for the torch requirement of the package.
 TORCH  := torch==2.13.0
 
-.PHONY: install test lint clean
+.PHONY: install test lint demo clean
 
 install: $(VENV)/.installed
 
@@ -19,6 +19,10 @@ $(VENV)/.installed: pyproject.toml
 
 test: install
 	$(BIN)/python -m pytest -q
+
+# Renders the quickstart dataset, trains the small ODMV-Net on the CPU and evaluates it.
+demo: install
+	$(BIN)/python -m odmv.demo
 
 lint: install
 	$(BIN)/ruff check .

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
+
 from omegaconf import ListConfig, OmegaConf
 
 from odmv.rig import VIEW_SETS, check_views
@@ -19,5 +22,13 @@ def view_list(views) -> list[str]:
         ) from None
 
 
-if not OmegaConf.has_resolver("odmv.views"):
-    OmegaConf.register_new_resolver("odmv.views", view_list)
+def settings_hash(node) -> str:
+    """Short stable hash of a config node (ignoring ``workers``), to name derived folders."""
+    d = OmegaConf.to_container(node, resolve=True) if not isinstance(node, dict) else node
+    d = {k: v for k, v in d.items() if k != "workers"}
+    return hashlib.sha1(json.dumps(d, sort_keys=True).encode()).hexdigest()[:8]
+
+
+for _name, _fn in (("odmv.views", view_list), ("odmv.hash", settings_hash)):
+    if not OmegaConf.has_resolver(_name):
+        OmegaConf.register_new_resolver(_name, _fn)

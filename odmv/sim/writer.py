@@ -95,6 +95,13 @@ class SimSettings:
             kw["rig"] = Rig.from_dict(c["rig"])
         return cls(**kw)
 
+    def complete(self) -> bool:
+        """Whether ``out`` already holds every scene of this dataset."""
+        scenes = self.out / "scenes"
+        return (self.out / MANIFEST).is_file() and all(
+            (scenes / scene_id(i)).is_dir() for i in range(self.scenes)
+        )
+
     def content_key(self) -> dict:
         """The settings that change pixels; a resumed run must match them."""
         return {

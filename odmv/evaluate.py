@@ -1,0 +1,164 @@
+"""Evaluate a checkpoint on its test split: ``python -m odmv.evaluate ckpt_path=PATH``.
+
+Writes ``metrics.json`` (mm, all pixels and pixels shadowed in at least one input view, next to
+a constant-depth predictor) and per-sample figures like the paper's Figs. 4-7: input fringes,
+ground truth, prediction, absolute error on a fixed mm scale, and a depth profile along a
+scanline. The data settings saved in the checkpoint are used unless ``data`` is overridden.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import hydra
+import lightning as L
+import matplotlib
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+import odmv.config  # noqa: F401  (registers the config resolvers)
+from odmv.metrics import DepthErrors
+from odmv.module import load_module
+from odmv.simulate import CONF_DIR
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+
+def constant_predictor_errors(dm, value_mm: float) -> dict[str, float]:
+    """Errors of predicting one depth everywhere (the mean training depth)."""
+    metric = DepthErrors()
+    for batch in dm.test_dataloader():
+        metric.update(
+            torch.full_like(batch["depth_mm"], value_mm), batch["depth_mm"], batch["valid"]
+        )
+    return {k: float(v) for k, v in metric.compute().items()}
+
+
+def mean_train_depth(dm) -> float:
+    total, count = 0.0, 0
+    for batch in dm.train_dataloader():
+        total += float((batch["depth_mm"] * batch["valid"]).sum())
+        count += float(batch["valid"].sum())
+    return total / max(count, 1)
+
+
+def save_figure(
+    path: Path,
+    sample: dict,
+    pred_mm: np.ndarray,
+    views: list[str],
+    error_scale_mm: float,
+    row: int | None,
+) -> None:
+    """Inputs, GT, prediction, |error| and a scanline profile for one sample."""
+    gt = sample["depth_mm"][0].numpy()
+    fringes = sample["fringes"].numpy()
+    lit = sample["lit"].numpy()
+    row = gt.shape[0] // 2 if row is None else row
+    s = len(views)
+    fig, axes = plt.subplots(2, max(s, 4), figsize=(3.2 * max(s, 4), 6.4), squeeze=False)
+    for k, v in enumerate(views):
+        axes[0, k].imshow(fringes[k], cmap="gray", vmin=-1, vmax=1)
+        axes[0, k].set_title(f"input {k + 1}: {v}")
+    lo, hi = float(gt.min()), float(gt.max())
+    im = axes[1, 0].imshow(gt, cmap="viridis_r", vmin=lo, vmax=hi)
+    axes[1, 0].set_title("ground truth depth (mm)")
+    fig.colorbar(im, ax=axes[1, 0], fraction=0.046)
+    im = axes[1, 1].imshow(pred_mm, cmap="viridis_r", vmin=lo, vmax=hi)
+    axes[1, 1].set_title("prediction (mm)")
+    fig.colorbar(im, ax=axes[1, 1], fraction=0.046)
+    err = np.abs(pred_mm - gt)
+    im = axes[1, 2].imshow(err, cmap="inferno", vmin=0, vmax=error_scale_mm)
+    axes[1, 2].set_title(f"|error| (mm), MAE {err.mean():.3f}")
+    fig.colorbar(im, ax=axes[1, 2], fraction=0.046)
+    for ax in (axes[1, 0], axes[1, 1], axes[1, 2]):
+        ax.axhline(row, color="red", lw=0.8)
+    x = np.arange(gt.shape[1])
+    ax = axes[1, 3]
+    ax.plot(x, gt[row], "k-", lw=1.2, label="ground truth")
+    ax.plot(x, pred_mm[row], "r-", lw=1.0, label="prediction")
+    shadow = (lit[:, row] < 0.5).any(0)
+    ax.fill_between(x, lo, hi, where=shadow, color="0.85", label="shadowed in a view")
+    ax.invert_yaxis()
+    ax.set_title(f"profile, row {row}")
+    ax.set_xlabel("column (px)")
+    ax.set_ylabel("depth (mm)")
+    ax.legend(fontsize=7)
+    for ax in axes.flat:
+        if ax is not axes[1, 3]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    for ax in axes[0, s:]:
+        ax.axis("off")
+    fig.suptitle(f"scene {sample['scene_id']}")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def evaluate(cfg: DictConfig) -> dict:
+    """Test metrics and figures for ``cfg.ckpt_path``; returns the metrics dict."""
+    out_dir = Path(cfg.paths.output_dir)
+    module = load_module(cfg.ckpt_path)
+    data_cfg = OmegaConf.to_container(cfg.data, resolve=True) if cfg.get("data") else None
+    data_cfg = data_cfg or dict(module.hparams.data_cfg)
+    data_cfg["progress"] = False
+    dm = hydra.utils.instantiate(data_cfg, _convert_="all")
+    dm.prepare_data()
+    dm.setup()
+    trainer = L.Trainer(
+        accelerator=cfg.accelerator,
+        devices=1,
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+    )
+    results = trainer.test(module, datamodule=dm, verbose=False)[0]
+    metrics = {k: float(v) for k, v in results.items()}
+    const = mean_train_depth(dm)
+    metrics.update({f"constant/{k}": v for k, v in constant_predictor_errors(dm, const).items()})
+    metrics["constant/depth_mm"] = const
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
+    module.eval()
+    ds = dm.datasets["test"]
+    with torch.no_grad():
+        for i in range(min(cfg.figures, len(ds))):
+            sample = ds[i]
+            pred = module(sample["fringes"][None])["depth"]
+            pred_mm = module.norm.depth_mm(pred)[0, 0].numpy()
+            save_figure(
+                out_dir / "figures" / f"{sample['scene_id']}.png",
+                sample,
+                pred_mm,
+                list(dm.spec.views),
+                cfg.error_scale_mm,
+                cfg.scanline,
+            )
+    return metrics
+
+
+def report(metrics: dict) -> str:
+    """Two lines: the model and the constant-depth predictor, in mm."""
+    return (
+        f"model     : MAE {metrics['test/mae_mm']:.4f} mm, RMSE {metrics['test/rmse_mm']:.4f} mm"
+        f" (shadowed pixels: MAE {metrics['test/mae_mm_shadow']:.4f} mm)\n"
+        f"constant  : MAE {metrics['constant/mae_mm']:.4f} mm, "
+        f"RMSE {metrics['constant/rmse_mm']:.4f} mm (predicting "
+        f"{metrics['constant/depth_mm']:.3f} mm everywhere)"
+    )
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="evaluate")
+def main(cfg: DictConfig) -> None:
+    metrics = evaluate(cfg)
+    print(report(metrics))
+    print(f"metrics and figures: {cfg.paths.output_dir}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,77 @@
+"""Training objective of the paper, eqs. (1)-(5), for any net's output dict.
+
+L = L_main + sum_k lambda_aux[k] L_aux_k + lambda_view L_view (+ lambda_occ L_occ, beyond the
+paper: BCE between the OCD masks and the simulator's lit masks, 0 by default), with
+L_depth = alpha (1 - SSIM) + (1 - alpha) L1 (eqs. 2-4, kornia's SSIM, 11 px Gaussian window)
+and L_view = MSE against the normalized input fringes (eq. 5). Terms whose outputs a net does
+not produce are skipped. Auxiliary targets are the depth taken at each scale's pixel centres
+(the same rule the data module resizes with), so no target depth is invented at an edge.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from kornia.metrics import ssim
+
+
+@dataclass
+class LossWeights:
+    alpha: float = 0.8  # SSIM share of the depth loss (eq. 2)
+    aux: list[float] = field(default_factory=lambda: [0.5, 0.3])  # lambda_1, lambda_2 (eq. 1)
+    view: float = 0.2  # lambda_3
+    occlusion: float = 0.0  # OCD supervision with lit masks (not in the paper)
+    phase: float = 1.0  # wrapped-phase head of multi-task baselines (MTLNet)
+    ssim_window: int = 11
+    depth_range: float = 2.0  # dynamic range of normalized depth, SSIM's L
+
+
+def resize_target(t: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Depth or mask at a coarser scale: the sample nearest each output pixel centre."""
+    if t.shape[-2:] == size:
+        return t
+    return F.interpolate(t, size=size, mode="nearest-exact")
+
+
+def depth_loss(pred: torch.Tensor, target: torch.Tensor, w: LossWeights) -> dict[str, torch.Tensor]:
+    target = resize_target(target, pred.shape[-2:])
+    side = min(pred.shape[-2:])
+    window = min(w.ssim_window, side if side % 2 else side - 1)  # odd, no larger than the map
+    l_ssim = 1 - ssim(pred, target, window, max_val=w.depth_range).mean()
+    l1 = (pred - target).abs().mean()
+    return {"loss": w.alpha * l_ssim + (1 - w.alpha) * l1, "ssim": l_ssim, "l1": l1}
+
+
+def composite_loss(out: dict, batch: dict, w: LossWeights) -> dict[str, torch.Tensor]:
+    """All loss terms (keys ``main``, ``aux1``, ..., ``view``, ``occlusion``, ``phase``) and
+    their weighted sum under ``loss``."""
+    terms = {}
+    main = depth_loss(out["depth"], batch["depth"], w)
+    terms.update(main=main["loss"], main_ssim=main["ssim"], main_l1=main["l1"])
+    total = main["loss"]
+    for k, (aux, lam) in enumerate(zip(out.get("aux", []), w.aux, strict=False), start=1):
+        terms[f"aux{k}"] = depth_loss(aux, batch["depth"], w)["loss"]
+        total = total + lam * terms[f"aux{k}"]
+    if "views" in out and w.view:
+        terms["view"] = F.mse_loss(out["views"], batch["fringes"])
+        total = total + w.view * terms["view"]
+    if "occlusion" in out and w.occlusion:
+        occ = []
+        for m in out["occlusion"]:  # B x 1 x S x h x w vs lit B x S x H x W
+            lit = resize_target(batch["lit"], m.shape[-2:])[:, None]
+            occ.append(F.binary_cross_entropy(m.clamp(1e-6, 1 - 1e-6), lit))
+        terms["occlusion"] = torch.stack(occ).mean()
+        total = total + w.occlusion * terms["occlusion"]
+    if "phase" in out and w.phase:
+        target, lit = (
+            batch["phase_target"],
+            batch["lit"],
+        )  # B x 2S x H x W (sin, cos), B x S x H x W
+        mask = lit.repeat_interleave(2, dim=1)
+        err = (out["phase"] - target) ** 2 * mask
+        terms["phase"] = err.sum() / mask.sum().clamp_min(1)
+        total = total + w.phase * terms["phase"]
+    terms["loss"] = total
+    return terms

@@ -1,0 +1,157 @@
+"""One LightningModule for every net: composite loss, mm metrics, optimizer, TensorBoard images.
+
+Hyperparameters hold plain data only (the net's config dict, loss weights, normalization,
+optimizer settings), so checkpoints load with torch's ``weights_only`` and a net can be rebuilt
+from a checkpoint alone (:func:`load_module`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+
+import hydra
+import lightning as L
+import torch
+from lightning.pytorch.utilities import rank_zero_only
+
+from odmv.data.normalize import Normalization
+from odmv.losses import LossWeights, composite_loss
+from odmv.metrics import DepthErrors
+
+
+def build_net(net_cfg: dict) -> torch.nn.Module:
+    return hydra.utils.instantiate(net_cfg, _convert_="all")
+
+
+class FPPModule(L.LightningModule):
+    def __init__(
+        self,
+        net_cfg: dict,
+        norm: dict | None = None,
+        views: list[str] | None = None,
+        loss: dict | None = None,
+        optimizer: dict | None = None,
+        scheduler: dict | None = None,
+        log_images: int = 2,
+        data_cfg: dict | None = None,
+    ):
+        super().__init__()
+        self.save_hyperparameters()
+        self.net = build_net(net_cfg)
+        self.norm = Normalization(**norm) if norm else None
+        self.weights = LossWeights(**(loss or {}))
+        self.metrics = torch.nn.ModuleDict(
+            {
+                f"{stage}_{subset}": DepthErrors()
+                for stage in ("val", "test")
+                for subset in ("all", "shadow")
+            }
+        )
+
+    def setup(self, stage: str) -> None:
+        """Take units and views from the data module; they are saved with the checkpoint."""
+        dm = getattr(self.trainer, "datamodule", None)
+        if dm is not None and dm.norm is not None:
+            if self.norm is not None and self.norm != dm.norm:
+                raise ValueError(
+                    f"checkpoint normalization {self.norm} differs from the data's "
+                    f"{dm.norm}; evaluate on data made with the same settings"
+                )
+            self.norm = dm.norm
+            self.hparams["norm"] = dm.norm.to_dict()
+            self.hparams["views"] = list(dm.spec.views)
+
+    def forward(self, fringes: torch.Tensor) -> dict:
+        return self.net(fringes)
+
+    # ---------------------------------------------------------------- steps
+    def training_step(self, batch, _):
+        out = self(batch["fringes"])
+        terms = composite_loss(out, batch, self.weights)
+        bs = batch["fringes"].shape[0]
+        self.log("train/loss", terms["loss"], prog_bar=True, batch_size=bs)
+        for k, v in terms.items():
+            if k != "loss":
+                self.log(f"train/loss_{k}", v, batch_size=bs)
+        return terms["loss"]
+
+    def _evaluate(self, batch, stage: str) -> dict:
+        out = self(batch["fringes"])
+        terms = composite_loss(out, batch, self.weights)
+        pred_mm = self.norm.depth_mm(out["depth"])
+        valid = batch["valid"]
+        shadowed = (batch["lit"] < 0.5).any(1, keepdim=True).float() * valid
+        self.metrics[f"{stage}_all"].update(pred_mm, batch["depth_mm"], valid)
+        self.metrics[f"{stage}_shadow"].update(pred_mm, batch["depth_mm"], shadowed)
+        self.log(
+            f"{stage}/loss", terms["loss"], batch_size=batch["fringes"].shape[0], sync_dist=True
+        )
+        return out
+
+    def validation_step(self, batch, batch_idx):
+        out = self._evaluate(batch, "val")
+        if batch_idx == 0 and self.hparams.log_images:
+            self._log_images(batch, out)
+
+    def test_step(self, batch, _):
+        self._evaluate(batch, "test")
+
+    def _log_metrics(self, stage: str) -> None:
+        for subset, suffix in (("all", ""), ("shadow", "_shadow")):
+            metric = self.metrics[f"{stage}_{subset}"]
+            for name, value in metric.compute().items():
+                self.log(f"{stage}/{name}{suffix}", value.float(), sync_dist=False)
+            metric.reset()
+
+    def on_validation_epoch_end(self):
+        self._log_metrics("val")
+
+    def on_test_epoch_end(self):
+        self._log_metrics("test")
+
+    # ---------------------------------------------------------------- optimisation
+    def configure_optimizers(self):
+        opt_cfg = dict(self.hparams.optimizer or {"lr": 1e-4})
+        opt = torch.optim.Adam(self.parameters(), **opt_cfg)
+        sch_cfg = dict(self.hparams.scheduler or {"T_0": 10})
+        sched = torch.optim.lr_scheduler.CosineAnnealingWarmRestarts(opt, **sch_cfg)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
+
+    # ---------------------------------------------------------------- TensorBoard
+    @rank_zero_only
+    def _log_images(self, batch, out) -> None:
+        tb = next(
+            (lg.experiment for lg in self.loggers if hasattr(lg.experiment, "add_image")), None
+        )
+        if tb is None:
+            return
+        n = min(self.hparams.log_images, batch["fringes"].shape[0])
+        gt = batch["depth_mm"][:n]
+        pred = self.norm.depth_mm(out["depth"][:n]).detach()
+        lo, hi = gt.amin(), gt.amax()
+        step = self.global_step
+
+        def grid(x):  # N x C x H x W in [0, 1] -> 1 x NH x CW: samples in rows, channels across
+            k, c, h, w = x.shape
+            return x.permute(0, 2, 1, 3).reshape(k * h, c * w)[None].clamp(0, 1).float().cpu()
+
+        tb.add_image("val/fringes", grid((batch["fringes"][:n] + 1) / 2), step)
+        tb.add_image("val/depth_gt", grid((gt - lo) / (hi - lo + 1e-9)), step)
+        tb.add_image("val/depth_pred", grid((pred - lo) / (hi - lo + 1e-9)), step)
+        tb.add_image("val/abs_error_0-1mm", grid((pred - gt).abs()), step)
+        if "occlusion" in out:
+            tb.add_image("val/ocd_masks", grid(out["occlusion"][0][:n, 0].detach()), step)
+        if "views" in out:
+            tb.add_image("val/views_reconstructed", grid((out["views"][:n].detach() + 1) / 2), step)
+
+    def on_fit_start(self):
+        n = sum(p.numel() for p in self.net.parameters())
+        for lg in self.loggers:
+            lg.log_hyperparams(
+                {"parameters": n, **{f"loss/{k}": str(v) for k, v in asdict(self.weights).items()}}
+            )
+
+
+def load_module(ckpt_path: str, map_location="cpu") -> FPPModule:
+    """Rebuild a trained module from its checkpoint alone (weights_only loading)."""
+    return FPPModule.load_from_checkpoint(ckpt_path, map_location=map_location, weights_only=True)

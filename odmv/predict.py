@@ -1,0 +1,116 @@
+"""Depth from your own fringe images: ``python -m odmv.predict ckpt_path=PATH input=PATH``.
+
+``input`` is either a scene folder of a dataset (``DATASET/scenes/<id>``, calibration from its
+manifest) or a folder holding one image per view named ``<view>.exr`` (e.g. ``right.exr``,
+``up.exr``; channel ``Y`` or the only channel), linear intensity like the training data, with
+the rig from ``manifest=PATH`` or the default rig. Writes ``depth.exr`` (channel Z, camera-axis
+z in mm) and ``points.ply`` (one point per pixel, camera frame, mm) into ``out`` (default: the
+run folder).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+import odmv.config  # noqa: F401  (registers the config resolvers)
+from odmv.data.dataset import DataError, SampleSpec, load_scene
+from odmv.io.exr import ExrError, read_exr, write_exr
+from odmv.io.manifest import MANIFEST, load_manifest
+from odmv.module import load_module
+from odmv.rig import Camera, Rig
+from odmv.simulate import CONF_DIR
+
+
+def _resize_area(a: np.ndarray, h: int, w: int) -> np.ndarray:
+    t = torch.from_numpy(np.ascontiguousarray(a, np.float32))[None]
+    return torch.nn.functional.interpolate(t, size=(h, w), mode="area")[0].numpy()
+
+
+def read_inputs(path: Path, views: list[str], size: tuple[int, int], manifest: str | None):
+    """(fringes S x H x W linear intensity at ``size``, rig) from a scene or an image folder."""
+    dataset = path.parent.parent
+    if (dataset / MANIFEST).is_file() and path.parent.name == "scenes":
+        m = load_manifest(dataset)
+        spec = SampleSpec(
+            tuple(views),
+            *size,
+            m.fringe.resolve_frequency(m.fringe.train_frequency),
+            m.fringe.train_step,
+        )
+        return load_scene(m, path.name, spec)["fringes"], m.rig
+    if not path.is_dir():
+        raise DataError(f"{path}: input must be a scene folder or a folder of <view>.exr images")
+    images = []
+    for v in views:
+        f = path / f"{v}.exr"
+        try:
+            chans = read_exr(f)
+        except ExrError as e:
+            raise DataError(f"{e} (the checkpoint needs views {views})") from None
+        img = chans["Y"] if "Y" in chans else next(iter(chans.values()))
+        if len(chans) > 1 and "Y" not in chans:
+            raise DataError(f"{f}: several channels and none named 'Y'")
+        images.append(img.astype(np.float32))
+    shapes = {a.shape for a in images}
+    if len(shapes) != 1:
+        raise DataError(f"{path}: the view images differ in size {sorted(shapes)}")
+    rig = load_manifest(manifest).rig if manifest else Rig()
+    return _resize_area(np.stack(images), *size), rig
+
+
+def point_cloud(depth_mm: np.ndarray, cam: Camera) -> np.ndarray:
+    """Camera-frame points (N x 3, mm) of every pixel centre at its depth."""
+    h, w = depth_mm.shape
+    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    _, d = cam.pixel_rays(np.stack([jj, ii], -1).reshape(-1, 2))
+    d_cam = d @ cam.R.T  # camera-frame directions
+    pts = d_cam / d_cam[:, 2:3] * depth_mm.reshape(-1, 1)
+    return pts[np.isfinite(pts).all(1)]
+
+
+def write_ply(path: Path, points: np.ndarray) -> Path:
+    """Binary little-endian PLY of float32 xyz points, written atomically."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment odmv depth, camera frame, mm\n"
+        f"element vertex {len(points)}\nproperty float x\nproperty float y\nproperty float z\n"
+        "end_header\n"
+    )
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(points.astype("<f4").tobytes())
+    tmp.replace(path)
+    return path
+
+
+def predict(cfg: DictConfig) -> dict[str, Path]:
+    module = load_module(cfg.ckpt_path).eval()
+    views = list(module.hparams.views)
+    data_cfg = module.hparams.data_cfg or {}
+    res = data_cfg.get("resolution", 480)
+    size = (res, res) if isinstance(res, int) else tuple(res)
+    fringes, rig = read_inputs(Path(cfg.input), views, size, cfg.manifest)
+    x = module.norm.fringes(torch.from_numpy(np.ascontiguousarray(fringes)))[None]
+    with torch.no_grad():
+        depth_mm = module.norm.depth_mm(module(x)["depth"])[0, 0].numpy().astype(np.float32)
+    out = Path(cfg.out or cfg.paths.output_dir)
+    depth_path = write_exr(out / "depth.exr", {"Z": depth_mm})
+    cam = rig.camera_at(size[1], size[0])
+    ply_path = write_ply(out / "points.ply", point_cloud(depth_mm, cam))
+    return {"depth": depth_path, "points": ply_path}
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="predict")
+def main(cfg: DictConfig) -> None:
+    paths = predict(cfg)
+    print(f"depth (mm): {paths['depth']}\npoint cloud: {paths['points']}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,94 @@
+"""Train a net: ``python -m odmv.train model=odmvnet views=4`` (config: conf/train.yaml).
+
+A thin Hydra wrapper around :func:`train`, which tests call with a composed config. After
+fitting it tests the best checkpoint and writes ``metrics.json`` and ``metrics.csv`` (one row
+with the run's overrides) into the run folder; multiruns also collect every job into
+``results.csv`` in the sweep folder (odmv.sweep).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import hydra
+import lightning as L
+from omegaconf import DictConfig, OmegaConf
+
+import odmv.config  # noqa: F401  (registers the config resolvers)
+from odmv.module import FPPModule
+from odmv.simulate import CONF_DIR
+from odmv.sweep import append_row
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(_flat(v, key + "/"))
+        else:
+            out[key] = v if isinstance(v, (int, float, str, bool)) or v is None else str(v)
+    return out
+
+
+def build(cfg: DictConfig):
+    """Data module, module, trainer from a composed config (shared with evaluation)."""
+    dm = hydra.utils.instantiate(cfg.data, _convert_="all")
+    module = FPPModule(
+        net_cfg=OmegaConf.to_container(cfg.model.net, resolve=True),
+        loss=OmegaConf.to_container(cfg.loss, resolve=True),
+        optimizer=OmegaConf.to_container(cfg.optimizer, resolve=True),
+        scheduler=OmegaConf.to_container(cfg.scheduler, resolve=True),
+        log_images=cfg.log_images,
+        data_cfg=OmegaConf.to_container(cfg.data, resolve=True),
+    )
+    loggers = [hydra.utils.instantiate(c) for c in (cfg.get("logger") or {}).values()]
+    callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()]
+    trainer = hydra.utils.instantiate(cfg.trainer, logger=loggers or False, callbacks=callbacks)
+    return dm, module, trainer
+
+
+def train(cfg: DictConfig) -> dict[str, float]:
+    """Fit, then test the best checkpoint; returns the test metrics (mm)."""
+    L.seed_everything(cfg.seed, workers=True)
+    out_dir = Path(cfg.paths.output_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    dm, module, trainer = build(cfg)
+    for lg in trainer.loggers:
+        lg.log_hyperparams(_flat(OmegaConf.to_container(cfg, resolve=True)))
+    trainer.fit(module, datamodule=dm, ckpt_path=cfg.ckpt_path)
+    dm.save_split(out_dir / "split.json")
+    metrics: dict[str, float] = {}
+    if cfg.test:
+        best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
+        results = trainer.test(module, datamodule=dm, ckpt_path=best or None, weights_only=True)
+        metrics = {k: float(v) for k, v in results[0].items()}
+        metrics["best_checkpoint"] = best
+        (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
+        overrides = _task_overrides()
+        append_row(out_dir / "metrics.csv", {"overrides": " ".join(overrides), **metrics})
+    return metrics
+
+
+def _task_overrides() -> list[str]:
+    from hydra.core.hydra_config import HydraConfig
+
+    return list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="train")
+def main(cfg: DictConfig) -> dict[str, float]:
+    metrics = train(cfg)
+    out = Path(cfg.paths.output_dir)
+    print(f"run folder: {out}\n  TensorBoard: tensorboard --logdir {out / 'tensorboard'}")
+    if metrics:
+        print(
+            "  test: "
+            + ", ".join(f"{k}={v:.4f}" for k, v in metrics.items() if isinstance(v, float))
+        )
+    return metrics
+
+
+if __name__ == "__main__":
+    main()

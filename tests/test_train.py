@@ -1,0 +1,173 @@
+"""Training, resume, evaluation, prediction and multirun through the real apps (tiny sizes)."""
+
+import csv
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from odmv.evaluate import evaluate
+from odmv.io.exr import read_channel, write_exr
+from odmv.predict import predict
+from odmv.simulate import CONF_DIR
+from odmv.train import train
+
+
+def _tiny(dataset, out, *extra):
+    return [
+        "data=exr",
+        f"root={dataset}",
+        "data.resolution=32",
+        "data.batch_size=2",
+        "data.num_workers=0",
+        "data.progress=false",
+        f"data.cache_dir={out}/cache",
+        "model.net.base_width=4",
+        "model.net.blocks=1",
+        "trainer.max_epochs=1",
+        "trainer.accelerator=cpu",
+        "trainer.enable_progress_bar=false",
+        "trainer.enable_model_summary=false",
+        "trainer.log_every_n_steps=1",
+        "trainer.limit_train_batches=2",
+        f"paths.output_dir={out}",
+        "log_images=1",
+        *extra,
+    ]
+
+
+def _compose(name, overrides):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(name, overrides=overrides)
+
+
+@pytest.fixture(scope="module")
+def trained(tiny_dataset, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    metrics = train(_compose("train", _tiny(tiny_dataset, out)))
+    return out, metrics
+
+
+def test_train_writes_checkpoints_metrics_and_tensorboard(trained):
+    out, metrics = trained
+    assert (out / "checkpoints" / "last.ckpt").is_file()
+    assert metrics["best_checkpoint"].startswith(str(out / "checkpoints" / "best-"))
+    assert 0 < metrics["test/mae_mm"] < 50 and metrics["test/rmse_mm"] > 0
+    assert (out / "metrics.json").is_file() and (out / "split.json").is_file()
+    acc = EventAccumulator(str(out / "tensorboard"), size_guidance={"images": 0}).Reload()
+    tags = acc.Tags()
+    for tag in (
+        "val/fringes",
+        "val/depth_gt",
+        "val/depth_pred",
+        "val/abs_error_0-1mm",
+        "val/ocd_masks",
+        "val/views_reconstructed",
+    ):
+        assert tag in tags["images"], tag
+    for tag in ("train/loss", "train/loss_main", "train/loss_view", "val/mae_mm", "lr-Adam"):
+        assert tag in tags["scalars"], tag
+    ckpt = torch.load(out / "checkpoints" / "last.ckpt", weights_only=True)
+    assert ckpt["hyper_parameters"]["views"] == ["right", "down", "left", "up"]
+
+
+def test_resume_continues_from_the_saved_epoch(trained, tiny_dataset, tmp_path):
+    out, _ = trained
+    last = out / "checkpoints" / "last.ckpt"
+    before = torch.load(last, weights_only=True)
+    assert before["epoch"] == 0 and before["global_step"] == 2
+    cfg = _compose(
+        "train",
+        _tiny(tiny_dataset, tmp_path, f"ckpt_path={last}", "trainer.max_epochs=2", "test=false"),
+    )
+    train(cfg)
+    after = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)
+    assert after["epoch"] == 1 and after["global_step"] == 4  # one more epoch, not two
+    assert after["lr_schedulers"][0]["last_epoch"] == before["lr_schedulers"][0]["last_epoch"] + 1
+
+
+def test_evaluate_writes_metrics_and_figures(trained, tmp_path):
+    out, metrics = trained
+    cfg = _compose(
+        "evaluate",
+        [
+            f"ckpt_path={metrics['best_checkpoint']}",
+            f"paths.output_dir={tmp_path}",
+            "figures=1",
+            "accelerator=cpu",
+        ],
+    )
+    em = evaluate(cfg)
+    assert em["test/mae_mm"] == pytest.approx(metrics["test/mae_mm"], rel=1e-5)
+    assert em["constant/mae_mm"] > 0 and 140 < em["constant/depth_mm"] < 150
+    pngs = list((tmp_path / "figures").glob("*.png"))
+    assert len(pngs) == 1 and pngs[0].read_bytes()[:4] == b"\x89PNG"
+
+
+def _ply_count(path):
+    head = path.read_bytes().split(b"end_header\n")[0].decode()
+    n = int(
+        next(line for line in head.splitlines() if line.startswith("element vertex")).split()[-1]
+    )
+    assert path.stat().st_size == len(head) + len("end_header\n") + 12 * n
+    return n
+
+
+def test_predict_scene_and_image_folder(trained, tiny_dataset, tmp_path):
+    _, metrics = trained
+    scene = tiny_dataset / "scenes" / "000004"
+    cfg = _compose(
+        "predict",
+        [
+            f"ckpt_path={metrics['best_checkpoint']}",
+            f"input={scene}",
+            f"out={tmp_path / 'a'}",
+            f"paths.output_dir={tmp_path}",
+        ],
+    )
+    paths = predict(cfg)
+    depth = read_channel(paths["depth"], "Z")
+    assert depth.shape == (32, 32) and 100 < np.median(depth) < 200  # mm
+    assert _ply_count(paths["points"]) == 32 * 32
+    # the same views as loose files: same depth
+    folder = tmp_path / "images"
+    for v in ("right", "down", "left", "up"):
+        write_exr(
+            folder / f"{v}.exr", {"Y": read_channel(scene / "fringe" / f"{v}_f2_s00.exr", "Y")}
+        )
+    cfg = _compose(
+        "predict",
+        [
+            f"ckpt_path={metrics['best_checkpoint']}",
+            f"input={folder}",
+            f"manifest={tiny_dataset}",
+            f"out={tmp_path / 'b'}",
+            f"paths.output_dir={tmp_path}",
+        ],
+    )
+    np.testing.assert_array_equal(read_channel(predict(cfg)["depth"], "Z"), depth)
+
+
+def test_multirun_writes_one_csv(tiny_dataset, tmp_path):
+    sweep = tmp_path / "sweep"
+    args = [a for a in _tiny(tiny_dataset, tmp_path) if not a.startswith("paths.output_dir")]
+    cmd = [
+        sys.executable,
+        "-m",
+        "odmv.train",
+        "-m",
+        "views=1,2",
+        *args,
+        "paths.output_dir=${hydra:runtime.output_dir}",
+        f"hydra.sweep.dir={sweep}",
+        "trainer.limit_train_batches=1",
+    ]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    rows = list(csv.DictReader((sweep / "results.csv").open()))
+    assert [r["views"] for r in rows] == ["1", "2"]
+    assert all(r["status"] == "ok" and float(r["test/mae_mm"]) > 0 for r in rows)
