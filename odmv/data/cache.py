@@ -1,0 +1,76 @@
+"""Decoded-array cache: one set of memory-mapped .npy files per (dataset, split, settings).
+
+Fringes and depth are stored as float32, lit masks as uint8, so cached items are bit-identical
+to items decoded from the EXR files. The cache lives outside the dataset (reading never writes
+there) in a folder named by a fingerprint of the manifest, the sample settings and every file's
+size and mtime: any change to the dataset selects a new folder, i.e. rebuilds.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from odmv.data.dataset import SampleSpec
+
+_ARRAYS = {"fringes": np.float32, "depth_mm": np.float32, "lit": np.uint8}
+_DONE = "complete.json"
+
+
+class ArrayCache:
+    """Read side: ``get(i)`` returns the arrays of item i (memory-mapped)."""
+
+    def __init__(self, folder: Path):
+        self.folder = folder
+        self._arrays = None
+
+    def _open(self) -> dict[str, np.ndarray]:
+        # opened lazily, so each DataLoader worker maps the files itself after forking
+        if self._arrays is None:
+            self._arrays = {k: np.load(self.folder / f"{k}.npy", mmap_mode="r") for k in _ARRAYS}
+        return self._arrays
+
+    def get(self, i: int) -> dict[str, np.ndarray]:
+        return {k: a[i] for k, a in self._open().items()}
+
+    def __getstate__(self):
+        return {"folder": self.folder, "_arrays": None}
+
+    @staticmethod
+    def complete(folder: Path) -> bool:
+        return (folder / _DONE).is_file()
+
+    @classmethod
+    def build(cls, folder: Path, ids: list[str], spec: SampleSpec,
+              load: Callable[[str], dict[str, np.ndarray]], progress=None) -> ArrayCache:
+        """Decode every item with ``load(scene_id)`` into ``folder`` (atomically: a temporary
+        folder renamed when complete); reuse it if it is already complete."""
+        if cls.complete(folder):
+            return cls(folder)
+        tmp = folder.with_name(f".{folder.name}.{os.getpid()}.tmp")
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        s, h, w = len(spec.views), spec.height_px, spec.width_px
+        shapes = {"fringes": (s, h, w), "depth_mm": (1, h, w), "lit": (s, h, w)}
+        try:
+            out = {k: np.lib.format.open_memmap(tmp / f"{k}.npy", "w+", _ARRAYS[k],
+                                                (len(ids),) + shapes[k]) for k in _ARRAYS}
+            for i, sid in enumerate(ids):
+                raw = load(sid)
+                for k in _ARRAYS:
+                    out[k][i] = raw[k]
+                if progress:
+                    progress()
+            for a in out.values():
+                a.flush()
+            (tmp / _DONE).write_text(json.dumps({"ids": ids, "spec": spec.key()}))
+            shutil.rmtree(folder, ignore_errors=True)
+            os.replace(tmp, folder)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+        return cls(folder)

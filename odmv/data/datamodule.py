@@ -1,0 +1,160 @@
+"""LightningDataModule over a dataset folder, rendering the synthetic default when it is missing."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import lightning as L
+import torch
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+from odmv.data.cache import ArrayCache
+from odmv.data.dataset import (
+    DataError,
+    FringeDataset,
+    SampleSpec,
+    check_spec,
+    fingerprint,
+    load_scene,
+    split_scenes,
+)
+from odmv.data.normalize import Normalization
+from odmv.io.manifest import MANIFEST, Manifest, ManifestError, load_manifest
+
+
+class FPPDataModule(L.LightningDataModule):
+    """Train/val/test loaders of fringe samples (see :class:`FringeDataset`).
+
+    ``simulate``: settings for :class:`odmv.sim.writer.SimSettings` (minus ``out``) used to render
+    the dataset into ``root`` when ``root`` holds no manifest; None means the data must exist.
+    """
+
+    def __init__(
+        self,
+        root: str,
+        views=("right", "down", "left", "up"),
+        resolution: int | list[int] = 480,
+        batch_size: int = 2,
+        eval_batch_size: int | None = None,
+        num_workers: int = 0,
+        fringe_frequency: int | None = None,
+        fringe_step: int | None = None,
+        with_stacks: bool = False,
+        split_seed: int = 0,
+        split_fractions: dict | None = None,
+        cache: bool = True,
+        cache_dir: str | None = None,
+        depth_half_range_mm: float = 10.0,
+        intensity_max: float | None = None,
+        simulate: dict | None = None,
+        progress: bool = True,
+    ):
+        super().__init__()
+        self.root = Path(root)
+        self.views = tuple(views)
+        self.resolution = resolution
+        self.batch_size = batch_size
+        self.eval_batch_size = eval_batch_size or batch_size
+        self.num_workers = num_workers
+        self.fringe_frequency, self.fringe_step = fringe_frequency, fringe_step
+        self.with_stacks = with_stacks
+        self.split_seed, self.split_fractions = split_seed, split_fractions
+        self.cache = cache
+        self.cache_dir = Path(cache_dir) if cache_dir else self.root.parent / ".odmv-cache"
+        self.depth_half_range_mm, self.intensity_max = depth_half_range_mm, intensity_max
+        self.simulate = simulate
+        self.progress = progress
+        self.manifest: Manifest | None = None
+        self.spec: SampleSpec | None = None
+        self.norm: Normalization | None = None
+        self.splits: dict[str, list[str]] = {}
+        self.datasets: dict[str, FringeDataset] = {}
+
+    # ------------------------------------------------------------------ preparation
+    def prepare_data(self) -> None:
+        """Render the synthetic dataset, or finish an interrupted render (rank zero only)."""
+        if self.simulate is None:
+            if (self.root / MANIFEST).is_file():
+                return
+            raise DataError(f"{self.root / MANIFEST}: no dataset here (set data.root to a dataset "
+                            "folder, or use data=synthetic to render one)")
+        from odmv.sim.writer import SimSettings, simulate  # only needed when rendering
+
+        settings = SimSettings.from_dict({**self.simulate, "out": str(self.root)})
+        if not settings.complete():
+            print(f"rendering the synthetic dataset into {self.root} (once; later runs reuse it)")
+            simulate(settings, workers=self.simulate.get("workers"), progress=self.progress)
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.datasets:
+            return
+        try:
+            m = load_manifest(self.root)
+        except ManifestError as e:
+            raise DataError(str(e)) from None
+        self.manifest = m
+        self.spec = check_spec(m, self.views, self.resolution, self.fringe_frequency,
+                               self.fringe_step, self.with_stacks)
+        sat = m.extra.get("simulation", {}).get("render", {}).get("saturation", 1.0)
+        self.norm = Normalization.for_working_distance(
+            m.rig.camera.working_distance_mm, self.depth_half_range_mm,
+            self.intensity_max if self.intensity_max is not None else sat,
+        )
+        self.splits = split_scenes(m, self.split_fractions, self.split_seed)
+        for name, ids in self.splits.items():
+            self.datasets[name] = FringeDataset(m, ids, self.spec, self.norm,
+                                                self._checked_cache(name, ids))
+
+    def _checked_cache(self, split: str, ids: list[str]) -> ArrayCache | None:
+        """Decode every sample of a split once, so bad files fail here, not mid-epoch; with
+        the cache on, the decoded arrays are kept for the epochs to come."""
+        if not ids:
+            return None
+        key = fingerprint(self.manifest, ids, self.spec) if self.cache else None
+        folder = self.cache_dir / f"{self.root.name}-{split}-{key}" if key else None
+        if folder is not None and ArrayCache.complete(folder):
+            return ArrayCache(folder)
+
+        def load(sid):
+            return load_scene(self.manifest, sid, self.spec)
+
+        columns = (TextColumn(f"checking {split}"), BarColumn(), MofNCompleteColumn())
+        with Progress(*columns, disable=not self.progress, transient=True) as bar:
+            task = bar.add_task(split, total=len(ids))
+            if folder is None:
+                for sid in ids:
+                    load(sid)
+                    bar.advance(task)
+                return None
+            return ArrayCache.build(folder, ids, self.spec, load, lambda: bar.advance(task))
+
+    # ------------------------------------------------------------------ loaders
+    def _loader(self, split: str, shuffle: bool) -> torch.utils.data.DataLoader:
+        ds = self.datasets.get(split)
+        if ds is None or len(ds) == 0:
+            raise DataError(f"data: the {split} split of {self.root} is empty; add scenes or "
+                            "change data.split_fractions")
+        return torch.utils.data.DataLoader(
+            ds, batch_size=self.batch_size if split == "train" else self.eval_batch_size,
+            shuffle=shuffle, num_workers=self.num_workers,
+            persistent_workers=self.num_workers > 0, drop_last=False,
+        )
+
+    def train_dataloader(self):
+        return self._loader("train", shuffle=True)
+
+    def val_dataloader(self):
+        return self._loader("val", shuffle=False)
+
+    def test_dataloader(self):
+        return self._loader("test", shuffle=False)
+
+    # ------------------------------------------------------------------ bookkeeping
+    def save_split(self, path: str | os.PathLike) -> Path:
+        """Write the scene ids of each split used (kept with the run's outputs)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps({"root": str(self.root.resolve()), **self.splits}, indent=1))
+        return path

@@ -1,0 +1,210 @@
+"""Samples from a dataset folder that follows the contract (docs/dataset.md).
+
+Reading never modifies the dataset. Images are resized to the requested resolution by area
+averaging; depth and masks by picking the sample nearest each output pixel centre, so no depth
+is invented between a part and the ground behind it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from odmv.data.normalize import Normalization
+from odmv.io.exr import ExrError, read_exr
+from odmv.io.manifest import (
+    DEPTH_CHANNEL,
+    DEPTH_FILE,
+    FRINGE_CHANNEL,
+    FRINGE_DIR,
+    LIT_FILE,
+    PROJ_COORD_FILE,
+    SPLITS,
+    Manifest,
+    ManifestError,
+    fringe_name,
+)
+from odmv.rig import check_views
+
+
+class DataError(ValueError):
+    """A one-line error naming the file or config key at fault."""
+
+
+@dataclass(frozen=True)
+class SampleSpec:
+    """What one sample holds: which views, at what size, which fringe image."""
+
+    views: tuple[str, ...]
+    height_px: int
+    width_px: int
+    frequency: int  # index into the manifest's periods (negative counts from the end)
+    step: int
+    with_stacks: bool = False  # also the full phase-shifting stacks and ground-truth phase
+
+    def key(self) -> dict:
+        return asdict(self)
+
+
+def check_spec(m: Manifest, views, resolution, frequency: int | None, step: int | None,
+               with_stacks: bool = False) -> SampleSpec:
+    """Resolve and check sample settings against a manifest (one-line DataError on a problem)."""
+    try:
+        views = check_views(list(views))
+    except ValueError as e:
+        raise DataError(f"views: {e}") from None
+    missing = [v for v in views if v not in m.views]
+    if missing:
+        raise DataError(f"views: {missing} not in dataset {m.root} (it has {list(m.views)})")
+    h, w = (resolution, resolution) if isinstance(resolution, int) else tuple(resolution)
+    if h % 16 or w % 16 or h <= 0 or w <= 0:
+        raise DataError(f"data.resolution: {h}x{w} must be positive multiples of 16")
+    f = m.fringe.train_frequency if frequency is None else frequency
+    s = m.fringe.train_step if step is None else step
+    try:
+        f = m.fringe.resolve_frequency(f)
+    except ManifestError as e:
+        raise DataError(f"data.fringe_frequency: {e}") from None
+    if not 0 <= s < m.fringe.steps:
+        raise DataError(f"data.fringe_step: {s} out of range for {m.fringe.steps} steps")
+    if m.images == "training" and (f, s) != (
+        m.fringe.resolve_frequency(m.fringe.train_frequency), m.fringe.train_step
+    ):
+        raise DataError(f"data.fringe_frequency/step: {m.root} holds only the training image")
+    if with_stacks and m.images != "full":
+        raise DataError(f"data.with_stacks: {m.root} holds no full sequences (images=training)")
+    return SampleSpec(views, h, w, f, s, with_stacks)
+
+
+def split_scenes(m: Manifest, fractions: dict | None, seed: int) -> dict[str, list[str]]:
+    """Scene ids per split: the manifest's labels when every scene has one, else a seeded
+    permutation cut by ``fractions`` (train/val/test)."""
+    ids = [s["id"] for s in m.scenes]
+    labels = [s.get("split") for s in m.scenes]
+    if all(lab in SPLITS for lab in labels):
+        return {k: [i for i, lab in zip(ids, labels, strict=True) if lab == k] for k in SPLITS}
+    fractions = fractions or {"train": 0.8, "val": 0.1, "test": 0.1}
+    w = np.array([float(fractions.get(k, 0)) for k in SPLITS])
+    if (w < 0).any() or w.sum() <= 0:
+        raise DataError(f"data.split_fractions: {fractions} must be non-negative, not all zero")
+    perm = [ids[i] for i in np.random.default_rng(seed).permutation(len(ids))]
+    n_val = int(round(w[1] / w.sum() * len(ids)))
+    n_test = int(round(w[2] / w.sum() * len(ids)))
+    n_train = len(ids) - n_val - n_test
+    return {"train": perm[:n_train], "val": perm[n_train:n_train + n_val],
+            "test": perm[n_train + n_val:]}
+
+
+def _resize(a: np.ndarray, h: int, w: int, mode: str) -> np.ndarray:
+    if a.shape[-2:] == (h, w):
+        return a
+    t = torch.from_numpy(np.ascontiguousarray(a))[None]
+    return F.interpolate(t, size=(h, w), mode=mode)[0].numpy()
+
+
+def _read(path: Path, channels: list[str]) -> dict[str, np.ndarray]:
+    try:
+        return read_exr(path, channels)
+    except ExrError as e:
+        raise DataError(str(e)) from None
+
+
+def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]:
+    """Raw arrays of one scene at ``spec``'s size: fringes (S,H,W) linear intensity,
+    depth_mm (1,H,W), lit (S,H,W) bool; with stacks also fringe_stack (S,K,H,W) and
+    projector_coord (S,H,W, NaN where unlit). Raises DataError naming a bad file."""
+    d = m.scene_dir(sid)
+    shape = (m.height_px, m.width_px)
+
+    def image(path: Path, channel: str) -> np.ndarray:
+        a = _read(path, [channel])[channel]
+        if a.shape != shape:
+            raise DataError(f"{path}: shape {a.shape} differs from the manifest's {shape}")
+        return a.astype(np.float32, copy=False)
+
+    fd = d / FRINGE_DIR
+    fringes = np.stack([image(fd / fringe_name(v, spec.frequency, spec.step), FRINGE_CHANNEL)
+                        for v in spec.views])
+    depth = image(d / DEPTH_FILE, DEPTH_CHANNEL)
+    if not np.isfinite(depth).all():
+        raise DataError(f"{d / DEPTH_FILE}: {int((~np.isfinite(depth)).sum())} non-finite depth values")
+    lit_all = _read(d / LIT_FILE, list(spec.views))
+    lit = np.stack([lit_all[v] for v in spec.views]).astype(np.float32)
+    if lit.shape[1:] != shape:
+        raise DataError(f"{d / LIT_FILE}: shape {lit.shape[1:]} differs from the manifest's {shape}")
+    h, w = spec.height_px, spec.width_px
+    out = {
+        "fringes": _resize(fringes, h, w, "area"),
+        "depth_mm": _resize(depth[None], h, w, "nearest-exact"),
+        "lit": _resize(lit, h, w, "nearest-exact") > 0.5,
+    }
+    if spec.with_stacks:
+        n_f, n_s = len(m.fringe.periods_px), m.fringe.steps
+        stack = np.stack([
+            np.stack([image(fd / fringe_name(v, f, s), FRINGE_CHANNEL)
+                      for f in range(n_f) for s in range(n_s)]) for v in spec.views])
+        out["fringe_stack"] = np.stack([_resize(x, h, w, "area") for x in stack])
+        coord = _read(d / PROJ_COORD_FILE, list(spec.views))
+        out["projector_coord"] = _resize(np.stack([coord[v] for v in spec.views]), h, w,
+                                         "nearest-exact")
+    return out
+
+
+def fingerprint(m: Manifest, ids: list[str], spec: SampleSpec) -> str:
+    """Changes whenever the manifest, the sample settings or any file read changes."""
+    h = hashlib.sha1()
+    h.update(json.dumps(m.to_json(), sort_keys=True).encode())
+    h.update(json.dumps(spec.key(), sort_keys=True).encode())
+    for sid in ids:
+        d = m.scene_dir(sid)
+        files = [d / FRINGE_DIR / fringe_name(v, spec.frequency, spec.step) for v in spec.views]
+        for p in files + [d / DEPTH_FILE, d / LIT_FILE]:
+            try:
+                st = p.stat()
+            except FileNotFoundError:
+                raise DataError(f"{p}: no such file") from None
+            h.update(f"{p.relative_to(m.root)}:{st.st_size}:{st.st_mtime_ns}".encode())
+    return h.hexdigest()[:16]
+
+
+class FringeDataset(torch.utils.data.Dataset):
+    """One scene per item: a dict of tensors (see :meth:`__getitem__`).
+
+    ``cache`` is an optional :class:`odmv.data.cache.ArrayCache` holding the same arrays
+    decoded; items from it are identical to items read from the EXR files.
+    """
+
+    def __init__(self, m: Manifest, ids: list[str], spec: SampleSpec, norm: Normalization,
+                 cache=None):
+        self.manifest, self.ids, self.spec, self.norm, self.cache = m, list(ids), spec, norm, cache
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def __getitem__(self, i: int) -> dict:
+        """fringes (S,H,W) in [-1,1]; depth (1,H,W) network units; depth_mm (1,H,W); lit (S,H,W)
+        and valid (1,H,W) as 0/1 floats; scene_id; with stacks also fringe_stack (S,K,H,W) in
+        [-1,1] and projector_coord (S,H,W) in projector px (NaN where unlit)."""
+        if self.cache is not None and not self.spec.with_stacks:
+            raw = self.cache.get(i)
+        else:
+            raw = load_scene(self.manifest, self.ids[i], self.spec)
+        depth_mm = torch.from_numpy(np.array(raw["depth_mm"], np.float32))
+        sample = {
+            "fringes": self.norm.fringes(torch.from_numpy(np.array(raw["fringes"], np.float32))),
+            "depth_mm": depth_mm,
+            "depth": self.norm.depth(depth_mm),
+            "lit": torch.from_numpy(np.array(raw["lit"], np.float32)),
+            "valid": torch.isfinite(depth_mm).float(),
+            "scene_id": self.ids[i],
+        }
+        if self.spec.with_stacks:
+            sample["fringe_stack"] = self.norm.fringes(torch.from_numpy(raw["fringe_stack"]))
+            sample["projector_coord"] = torch.from_numpy(raw["projector_coord"])
+        return sample

@@ -1,0 +1,43 @@
+"""The one place where physical units meet network units.
+
+Fringe images (linear intensity, 0 .. ``intensity_max``) map to [-1, 1] so the view
+reconstruction head's Tanh can match them. Depth (mm, camera-axis z) maps to
+``(depth_mm - center_mm) / half_range_mm``; the defaults put the reference plane (the working
+distance) at +1 and objects up to 2 * half_range_mm tall towards -1.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+
+@dataclass(frozen=True)
+class Normalization:
+    intensity_max: float = 1.0
+    depth_center_mm: float = 140.0
+    depth_half_range_mm: float = 10.0
+
+    @classmethod
+    def for_working_distance(
+        cls, working_distance_mm: float, half_range_mm: float = 10.0, intensity_max: float = 1.0
+    ) -> Normalization:
+        return cls(intensity_max, working_distance_mm - half_range_mm, half_range_mm)
+
+    def fringes(self, images):
+        """Linear intensity -> [-1, 1] (clipped at 0 and intensity_max)."""
+        lib = torch if isinstance(images, torch.Tensor) else np
+        return 2 * lib.clip(images / self.intensity_max, 0, 1) - 1
+
+    def depth(self, depth_mm):
+        """mm -> network units."""
+        return (depth_mm - self.depth_center_mm) / self.depth_half_range_mm
+
+    def depth_mm(self, depth_norm):
+        """Network units -> mm."""
+        return depth_norm * self.depth_half_range_mm + self.depth_center_mm
+
+    def to_dict(self) -> dict:
+        return asdict(self)
