@@ -29,6 +29,14 @@ def settings_hash(node) -> str:
     return hashlib.sha1(json.dumps(d, sort_keys=True).encode()).hexdigest()[:8]
 
 
-for _name, _fn in (("odmv.views", view_list), ("odmv.hash", settings_hash)):
+def n_views(views) -> int:
+    return len(view_list(views))
+
+
+for _name, _fn in (
+    ("odmv.views", view_list),
+    ("odmv.n_views", n_views),
+    ("odmv.hash", settings_hash),
+):
     if not OmegaConf.has_resolver(_name):
         OmegaConf.register_new_resolver(_name, _fn)

@@ -186,3 +186,30 @@ def test_hydra_groups_select_views_and_data(tmp_path):
         cfg = compose("train", overrides=["views=5"])
         with pytest.raises(Exception, match="views=5: use 1, 2, 3 or 4"):
             list(cfg.data.views)
+
+
+def test_phase_targets_match_the_phase_shifting_phase(tiny_dataset, tmp_path):
+    from odmv.fpp import wrapped_phase
+
+    # the 8-period sequence: at 64 px the 64-period one is finer than a pixel
+    dm = _dm(
+        tiny_dataset,
+        tmp_path,
+        views=VIEW_SETS[2],
+        with_phase=True,
+        with_stacks=True,
+        fringe_frequency=1,
+        fringe_step=3,
+    )
+    s = dm.datasets["train"][0]
+    assert s["phase_target"].shape == (4, 64, 64)
+    lit = s["lit"][0].bool().numpy()
+    stack = (s["fringe_stack"][0, 12:24].numpy() + 1) / 2  # right view, 8 periods
+    stack = np.roll(stack, -3, axis=0)  # step 3 first: its phase is the input image's phase
+    phase, modulation = wrapped_phase(stack)
+    sin, cos = s["phase_target"][0].numpy(), s["phase_target"][1].numpy()
+    target = np.arctan2(sin, cos)
+    good = lit & (modulation > 0.1)
+    err = np.abs(np.angle(np.exp(1j * (phase - target))))[good]
+    assert good.mean() > 0.3 and np.median(err) < 0.05
+    assert (sin[~lit] == 0).all() and (cos[~lit] == 0).all()

@@ -18,7 +18,18 @@ import numpy as np
 
 from odmv.data.dataset import SampleSpec
 
-_ARRAYS = {"fringes": np.float32, "depth_mm": np.float32, "lit": np.uint8}
+_ARRAYS = {
+    "fringes": np.float32,
+    "depth_mm": np.float32,
+    "lit": np.uint8,
+    "phase_target": np.float32,
+}
+
+
+def _names(spec: SampleSpec) -> list[str]:
+    return [k for k in _ARRAYS if k != "phase_target" or spec.with_phase]
+
+
 _DONE = "complete.json"
 
 
@@ -32,13 +43,13 @@ class ArrayCache:
     def _open(self) -> dict[str, np.ndarray]:
         # opened lazily, so each DataLoader worker maps the files itself after forking
         if self._arrays is None:
-            self._arrays = {k: np.load(self.folder / f"{k}.npy", mmap_mode="r") for k in _ARRAYS}
+            self._arrays = {p.stem: np.load(p, mmap_mode="r") for p in self.folder.glob("*.npy")}
         return self._arrays
 
     def get(self, i: int) -> dict[str, np.ndarray]:
         return {k: a[i] for k, a in self._open().items()}
 
-    def __getstate__(self):
+    def __getstate__(self):  # DataLoader workers re-open the maps
         return {"folder": self.folder, "_arrays": None}
 
     @staticmethod
@@ -46,8 +57,14 @@ class ArrayCache:
         return (folder / _DONE).is_file()
 
     @classmethod
-    def build(cls, folder: Path, ids: list[str], spec: SampleSpec,
-              load: Callable[[str], dict[str, np.ndarray]], progress=None) -> ArrayCache:
+    def build(
+        cls,
+        folder: Path,
+        ids: list[str],
+        spec: SampleSpec,
+        load: Callable[[str], dict[str, np.ndarray]],
+        progress=None,
+    ) -> ArrayCache:
         """Decode every item with ``load(scene_id)`` into ``folder`` (atomically: a temporary
         folder renamed when complete); reuse it if it is already complete."""
         if cls.complete(folder):
@@ -56,13 +73,23 @@ class ArrayCache:
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
         s, h, w = len(spec.views), spec.height_px, spec.width_px
-        shapes = {"fringes": (s, h, w), "depth_mm": (1, h, w), "lit": (s, h, w)}
+        shapes = {
+            "fringes": (s, h, w),
+            "depth_mm": (1, h, w),
+            "lit": (s, h, w),
+            "phase_target": (2 * s, h, w),
+        }
+        names = _names(spec)
         try:
-            out = {k: np.lib.format.open_memmap(tmp / f"{k}.npy", "w+", _ARRAYS[k],
-                                                (len(ids),) + shapes[k]) for k in _ARRAYS}
+            out = {
+                k: np.lib.format.open_memmap(
+                    tmp / f"{k}.npy", "w+", _ARRAYS[k], (len(ids),) + shapes[k]
+                )
+                for k in names
+            }
             for i, sid in enumerate(ids):
                 raw = load(sid)
-                for k in _ARRAYS:
+                for k in names:
                     out[k][i] = raw[k]
                 if progress:
                     progress()

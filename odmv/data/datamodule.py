@@ -42,6 +42,7 @@ class FPPDataModule(L.LightningDataModule):
         fringe_frequency: int | None = None,
         fringe_step: int | None = None,
         with_stacks: bool = False,
+        with_phase: bool = False,
         split_seed: int = 0,
         split_fractions: dict | None = None,
         cache: bool = True,
@@ -59,7 +60,7 @@ class FPPDataModule(L.LightningDataModule):
         self.eval_batch_size = eval_batch_size or batch_size
         self.num_workers = num_workers
         self.fringe_frequency, self.fringe_step = fringe_frequency, fringe_step
-        self.with_stacks = with_stacks
+        self.with_stacks, self.with_phase = with_stacks, with_phase
         self.split_seed, self.split_fractions = split_seed, split_fractions
         self.cache = cache
         self.cache_dir = Path(cache_dir) if cache_dir else self.root.parent / ".odmv-cache"
@@ -78,8 +79,10 @@ class FPPDataModule(L.LightningDataModule):
         if self.simulate is None:
             if (self.root / MANIFEST).is_file():
                 return
-            raise DataError(f"{self.root / MANIFEST}: no dataset here (set data.root to a dataset "
-                            "folder, or use data=synthetic to render one)")
+            raise DataError(
+                f"{self.root / MANIFEST}: no dataset here (set data.root to a dataset "
+                "folder, or use data=synthetic to render one)"
+            )
         from odmv.sim.writer import SimSettings, simulate  # only needed when rendering
 
         settings = SimSettings.from_dict({**self.simulate, "out": str(self.root)})
@@ -95,17 +98,26 @@ class FPPDataModule(L.LightningDataModule):
         except ManifestError as e:
             raise DataError(str(e)) from None
         self.manifest = m
-        self.spec = check_spec(m, self.views, self.resolution, self.fringe_frequency,
-                               self.fringe_step, self.with_stacks)
+        self.spec = check_spec(
+            m,
+            self.views,
+            self.resolution,
+            self.fringe_frequency,
+            self.fringe_step,
+            self.with_stacks,
+            self.with_phase,
+        )
         sat = m.extra.get("simulation", {}).get("render", {}).get("saturation", 1.0)
         self.norm = Normalization.for_working_distance(
-            m.rig.camera.working_distance_mm, self.depth_half_range_mm,
+            m.rig.camera.working_distance_mm,
+            self.depth_half_range_mm,
             self.intensity_max if self.intensity_max is not None else sat,
         )
         self.splits = split_scenes(m, self.split_fractions, self.split_seed)
         for name, ids in self.splits.items():
-            self.datasets[name] = FringeDataset(m, ids, self.spec, self.norm,
-                                                self._checked_cache(name, ids))
+            self.datasets[name] = FringeDataset(
+                m, ids, self.spec, self.norm, self._checked_cache(name, ids)
+            )
 
     def _checked_cache(self, split: str, ids: list[str]) -> ArrayCache | None:
         """Decode every sample of a split once, so bad files fail here, not mid-epoch; with
@@ -134,12 +146,17 @@ class FPPDataModule(L.LightningDataModule):
     def _loader(self, split: str, shuffle: bool) -> torch.utils.data.DataLoader:
         ds = self.datasets.get(split)
         if ds is None or len(ds) == 0:
-            raise DataError(f"data: the {split} split of {self.root} is empty; add scenes or "
-                            "change data.split_fractions")
+            raise DataError(
+                f"data: the {split} split of {self.root} is empty; add scenes or "
+                "change data.split_fractions"
+            )
         return torch.utils.data.DataLoader(
-            ds, batch_size=self.batch_size if split == "train" else self.eval_batch_size,
-            shuffle=shuffle, num_workers=self.num_workers,
-            persistent_workers=self.num_workers > 0, drop_last=False,
+            ds,
+            batch_size=self.batch_size if split == "train" else self.eval_batch_size,
+            shuffle=shuffle,
+            num_workers=self.num_workers,
+            persistent_workers=self.num_workers > 0,
+            drop_last=False,
         )
 
     def train_dataloader(self):

@@ -47,13 +47,23 @@ class SampleSpec:
     frequency: int  # index into the manifest's periods (negative counts from the end)
     step: int
     with_stacks: bool = False  # also the full phase-shifting stacks and ground-truth phase
+    with_phase: bool = False  # also (sin, cos) of the input image's ground-truth phase
+    period_px: float = 0.0  # fringe period of the input image (projector px)
+    n_steps: int = 1  # phase steps of its sequence
 
     def key(self) -> dict:
         return asdict(self)
 
 
-def check_spec(m: Manifest, views, resolution, frequency: int | None, step: int | None,
-               with_stacks: bool = False) -> SampleSpec:
+def check_spec(
+    m: Manifest,
+    views,
+    resolution,
+    frequency: int | None,
+    step: int | None,
+    with_stacks: bool = False,
+    with_phase: bool = False,
+) -> SampleSpec:
     """Resolve and check sample settings against a manifest (one-line DataError on a problem)."""
     try:
         views = check_views(list(views))
@@ -74,12 +84,15 @@ def check_spec(m: Manifest, views, resolution, frequency: int | None, step: int 
     if not 0 <= s < m.fringe.steps:
         raise DataError(f"data.fringe_step: {s} out of range for {m.fringe.steps} steps")
     if m.images == "training" and (f, s) != (
-        m.fringe.resolve_frequency(m.fringe.train_frequency), m.fringe.train_step
+        m.fringe.resolve_frequency(m.fringe.train_frequency),
+        m.fringe.train_step,
     ):
         raise DataError(f"data.fringe_frequency/step: {m.root} holds only the training image")
     if with_stacks and m.images != "full":
         raise DataError(f"data.with_stacks: {m.root} holds no full sequences (images=training)")
-    return SampleSpec(views, h, w, f, s, with_stacks)
+    return SampleSpec(
+        views, h, w, f, s, with_stacks, with_phase, m.fringe.periods_px[f], m.fringe.steps
+    )
 
 
 def split_scenes(m: Manifest, fractions: dict | None, seed: int) -> dict[str, list[str]]:
@@ -97,8 +110,11 @@ def split_scenes(m: Manifest, fractions: dict | None, seed: int) -> dict[str, li
     n_val = int(round(w[1] / w.sum() * len(ids)))
     n_test = int(round(w[2] / w.sum() * len(ids)))
     n_train = len(ids) - n_val - n_test
-    return {"train": perm[:n_train], "val": perm[n_train:n_train + n_val],
-            "test": perm[n_train + n_val:]}
+    return {
+        "train": perm[:n_train],
+        "val": perm[n_train : n_train + n_val],
+        "test": perm[n_train + n_val :],
+    }
 
 
 def _resize(a: np.ndarray, h: int, w: int, mode: str) -> np.ndarray:
@@ -118,7 +134,8 @@ def _read(path: Path, channels: list[str]) -> dict[str, np.ndarray]:
 def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]:
     """Raw arrays of one scene at ``spec``'s size: fringes (S,H,W) linear intensity,
     depth_mm (1,H,W), lit (S,H,W) bool; with stacks also fringe_stack (S,K,H,W) and
-    projector_coord (S,H,W, NaN where unlit). Raises DataError naming a bad file."""
+    projector_coord (S,H,W, NaN where unlit); with phase also phase_target (2S,H,W: sin, cos
+    of each view's input-image phase, 0 where unlit). Raises DataError naming a bad file."""
     d = m.scene_dir(sid)
     shape = (m.height_px, m.width_px)
 
@@ -129,30 +146,49 @@ def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]
         return a.astype(np.float32, copy=False)
 
     fd = d / FRINGE_DIR
-    fringes = np.stack([image(fd / fringe_name(v, spec.frequency, spec.step), FRINGE_CHANNEL)
-                        for v in spec.views])
+    fringes = np.stack(
+        [image(fd / fringe_name(v, spec.frequency, spec.step), FRINGE_CHANNEL) for v in spec.views]
+    )
     depth = image(d / DEPTH_FILE, DEPTH_CHANNEL)
     if not np.isfinite(depth).all():
-        raise DataError(f"{d / DEPTH_FILE}: {int((~np.isfinite(depth)).sum())} non-finite depth values")
+        raise DataError(
+            f"{d / DEPTH_FILE}: {int((~np.isfinite(depth)).sum())} non-finite depth values"
+        )
     lit_all = _read(d / LIT_FILE, list(spec.views))
     lit = np.stack([lit_all[v] for v in spec.views]).astype(np.float32)
     if lit.shape[1:] != shape:
-        raise DataError(f"{d / LIT_FILE}: shape {lit.shape[1:]} differs from the manifest's {shape}")
+        raise DataError(
+            f"{d / LIT_FILE}: shape {lit.shape[1:]} differs from the manifest's {shape}"
+        )
     h, w = spec.height_px, spec.width_px
     out = {
         "fringes": _resize(fringes, h, w, "area"),
         "depth_mm": _resize(depth[None], h, w, "nearest-exact"),
         "lit": _resize(lit, h, w, "nearest-exact") > 0.5,
     }
+    if spec.with_stacks or spec.with_phase:
+        coord = _read(d / PROJ_COORD_FILE, list(spec.views))
+        coord = _resize(np.stack([coord[v] for v in spec.views]), h, w, "nearest-exact")
+    if spec.with_phase:  # the image is A + B cos(phase): phase = 2 pi u / P + 2 pi n / N
+        phase = 2 * np.pi * (coord / spec.period_px + spec.step / spec.n_steps)
+        sc = np.stack([np.sin(phase), np.cos(phase)], 1).reshape(-1, h, w)
+        out["phase_target"] = np.nan_to_num(sc, nan=0.0).astype(np.float32)
     if spec.with_stacks:
         n_f, n_s = len(m.fringe.periods_px), m.fringe.steps
-        stack = np.stack([
-            np.stack([image(fd / fringe_name(v, f, s), FRINGE_CHANNEL)
-                      for f in range(n_f) for s in range(n_s)]) for v in spec.views])
+        stack = np.stack(
+            [
+                np.stack(
+                    [
+                        image(fd / fringe_name(v, f, s), FRINGE_CHANNEL)
+                        for f in range(n_f)
+                        for s in range(n_s)
+                    ]
+                )
+                for v in spec.views
+            ]
+        )
         out["fringe_stack"] = np.stack([_resize(x, h, w, "area") for x in stack])
-        coord = _read(d / PROJ_COORD_FILE, list(spec.views))
-        out["projector_coord"] = _resize(np.stack([coord[v] for v in spec.views]), h, w,
-                                         "nearest-exact")
+        out["projector_coord"] = coord
     return out
 
 
@@ -164,7 +200,8 @@ def fingerprint(m: Manifest, ids: list[str], spec: SampleSpec) -> str:
     for sid in ids:
         d = m.scene_dir(sid)
         files = [d / FRINGE_DIR / fringe_name(v, spec.frequency, spec.step) for v in spec.views]
-        for p in files + [d / DEPTH_FILE, d / LIT_FILE]:
+        files += [d / DEPTH_FILE, d / LIT_FILE] + ([d / PROJ_COORD_FILE] if spec.with_phase else [])
+        for p in files:
             try:
                 st = p.stat()
             except FileNotFoundError:
@@ -180,8 +217,9 @@ class FringeDataset(torch.utils.data.Dataset):
     decoded; items from it are identical to items read from the EXR files.
     """
 
-    def __init__(self, m: Manifest, ids: list[str], spec: SampleSpec, norm: Normalization,
-                 cache=None):
+    def __init__(
+        self, m: Manifest, ids: list[str], spec: SampleSpec, norm: Normalization, cache=None
+    ):
         self.manifest, self.ids, self.spec, self.norm, self.cache = m, list(ids), spec, norm, cache
 
     def __len__(self) -> int:
@@ -204,6 +242,8 @@ class FringeDataset(torch.utils.data.Dataset):
             "valid": torch.isfinite(depth_mm).float(),
             "scene_id": self.ids[i],
         }
+        if self.spec.with_phase:
+            sample["phase_target"] = torch.from_numpy(np.array(raw["phase_target"], np.float32))
         if self.spec.with_stacks:
             sample["fringe_stack"] = self.norm.fringes(torch.from_numpy(raw["fringe_stack"]))
             sample["projector_coord"] = torch.from_numpy(raw["projector_coord"])
