@@ -107,6 +107,7 @@ def evaluate(cfg: DictConfig) -> dict:
     data_cfg = OmegaConf.to_container(cfg.data, resolve=True) if cfg.get("data") else None
     data_cfg = data_cfg or dict(module.hparams.data_cfg)
     data_cfg["progress"] = False
+    data_cfg["views"] = list(module.hparams.views)  # the views the net was trained on
     dm = hydra.utils.instantiate(data_cfg, _convert_="all")
     dm.prepare_data()
     dm.setup()

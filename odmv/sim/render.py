@@ -10,7 +10,8 @@ theta_k the angle between the surface normal and the direction to the projector,
 distance to the projector centre and lit_k is 1 iff the point is inside the projector frustum,
 faces it and nothing blocks the segment to its centre (exact shadows from occlusion rays).
 
-Anti-aliasing integrates each pixel over ss x ss sub-pixel rays. Because the pattern is a
+Anti-aliasing averages each pixel over a grid of sub-pixel rays (``supersample`` per pixel and
+axis, see :class:`SampleGrid`) whose centre samples also give the ground truth. As the pattern is a
 Fourier series in the phase, each pixel's integral reduces to a few per-pixel sums (of
 albedo * irradiance * cos(h phi) and * sin(h phi)), from which every phase step is an exact
 linear combination: 148 images cost little more than one. Defocus (Gaussian blur of the optical
@@ -38,7 +39,7 @@ from odmv.sim.scenes import Scene
 class RenderConfig:
     """Optical and sensor settings. Intensities are relative: 1.0 is the sensor's full scale."""
 
-    supersample: int = 2  # sub-pixel rays per axis (area-averaged)
+    supersample: int = 2  # sub-pixel sampling per axis (area-averaged, see SampleGrid)
     ambient: float = 0.05  # uniform ambient irradiance
     projector_irradiance: float = 0.9  # E_k at the reference distance, normal incidence
     fringe_offset: float = 0.5  # A
@@ -68,28 +69,28 @@ class RayCaster:
         self.offsets = (self.normals * tris[:, 0]).sum(1)
         self.albedo = scene.albedo
 
-    def intersect(self, origins: np.ndarray, dirs: np.ndarray, exact: bool):
+    def intersect(self, origins: np.ndarray, dirs: np.ndarray):
         """First hits of rays (R x 3 float32 origins and unit directions).
 
-        ``exact``: refine hit points in float64 on the hit triangle's plane (ground truth);
-        otherwise points are float32 from Embree's hit distance (image formation). Returns
-        points, unit normals facing the ray origin, albedo and a hit mask.
+        Returns float32 points (from Embree's hit distance), unit normals facing the ray
+        origin, albedo, hit triangle ids (-1: none).
         """
         res = self._embree.run(origins, dirs, output=1)
         prim = res["primID"]
         hit = prim >= 0
         p = np.where(hit, prim, 0)
-        if exact:
-            n = self.normals[p]
-            o, d = origins.astype(np.float64), dirs.astype(np.float64)
-            t = (self.offsets[p] - np.einsum("ij,ij->i", n, o)) / np.einsum("ij,ij->i", n, d)
-        else:
-            n = self.normals32[p]
-            o, d, t = origins, dirs, np.where(hit, res["tfar"], 0)
-        pts = o + t[:, None] * d
-        flip = np.einsum("ij,ij->i", n, d) > 0
+        n = self.normals32[p]
+        pts = origins + np.where(hit, res["tfar"], 0)[:, None] * dirs
+        flip = np.einsum("ij,ij->i", n, dirs) > 0
         n[flip] *= -1
-        return pts, n, np.where(hit, self.albedo[p], 0), hit
+        return pts, n, np.where(hit, self.albedo[p], 0).astype(np.float32), prim
+
+    def exact_points(self, origins: np.ndarray, dirs: np.ndarray, prim: np.ndarray):
+        """Hit points in float64, intersecting each ray with its hit triangle's plane."""
+        n = self.normals[prim]
+        o, d = origins.astype(np.float64), dirs.astype(np.float64)
+        t = (self.offsets[prim] - np.einsum("ij,ij->i", n, o)) / np.einsum("ij,ij->i", n, d)
+        return o + t[:, None] * d
 
     def lit_by(
         self,
@@ -108,18 +109,23 @@ class RayCaster:
         cam = pts @ proj.R.T.astype(dt) + proj.t.astype(dt)
         z = cam[:, 2]
         inv_z = 1 / np.where(z > 0, z, 1)
-        u = (proj.K[0, 0] * cam[:, 0]) * inv_z + proj.K[0, 2]
-        v = (proj.K[1, 1] * cam[:, 1]) * inv_z + proj.K[1, 2]
+        # Python floats: NumPy float64 scalars would promote the float32 arrays
+        fx, fy, cx, cy = (float(proj.K[i, j]) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)))
+        u = (fx * cam[:, 0]) * inv_z + cx
+        v = (fy * cam[:, 1]) * inv_z + cy
         inside = (z > 0) & (u >= 0) & (u < proj.width_px) & (v >= 0) & (v < proj.height_px)
         to_p = proj.center.astype(dt) - pts
         dist2 = np.einsum("ij,ij->i", to_p, to_p)
         cos_dist = np.einsum("ij,ij->i", normals, to_p)  # cos(theta) * distance
         lit = inside & (cos_dist > 0)
-        # Shadow rays with unnormalized directions: t = 1 is the projector centre; stopping at
-        # 1 - 1e-6 (~0.2 um short) skips nothing real. Zero length where already unlit.
-        to_c = proj.center.astype(np.float32) - shadow_origins
-        far = np.where(lit, np.float32(1 - 1e-6), np.float32(0))
-        lit &= self._embree.run(shadow_origins, to_c, dists=far, query="OCCLUDED") == -1
+        # Shadow rays, for candidates only, along the unnormalized point-to-projector vector:
+        # t = 1 reaches the projector centre (shifted by the origins' ~1 um nudge); stopping at
+        # 1 - 1e-6 skips nothing real.
+        idx = np.flatnonzero(lit)
+        far = np.full(len(idx), 1 - 1e-6, np.float32)
+        d32 = to_p[idx].astype(np.float32, copy=False)
+        hits = self._embree.run(shadow_origins[idx], d32, dists=far, query="OCCLUDED")
+        lit[idx[hits != -1]] = False
         geom = np.where(lit, cos_dist * (ref_mm**2) / (dist2 * np.sqrt(dist2)), 0)
         return lit, u, geom.astype(dt, copy=False)
 
@@ -160,21 +166,56 @@ class Rendered:
     fringes: dict[str, np.ndarray]  # file name (see odmv.io.manifest) -> float32 image
 
 
-@functools.lru_cache(maxsize=4)
-def camera_rays(rig: Rig, height_px: int, width_px: int, ss: int) -> tuple[np.ndarray, np.ndarray]:
-    """Ray origins and unit directions (float32) for ss x ss sub-pixel samples per pixel, ordered
-    (row, column, sample); ss = 1 gives the pixel-centre rays. Cached: they depend on the rig only.
+@dataclass(frozen=True)
+class SampleGrid:
+    """Camera rays on a regular sub-pixel grid that contains every pixel centre.
+
+    Odd ``ss``: ss x ss samples per pixel at (k + 1/2) / ss, equally weighted (midpoint rule).
+    Even ``ss``: samples every 1/ss px including pixel borders, shared by neighbours, with
+    trapezoid weights (1/2, 1, ..., 1, 1/2) / ss per axis. Either way each pixel's value is its
+    area average, and sample ``ss // 2`` along each axis is the pixel-centre ray, which gives
+    the ground truth without extra rays.
     """
+
+    origins: np.ndarray  # (rows * cols) x 3 float32
+    dirs: np.ndarray
+    rows: int
+    cols: int
+    ss: int
+    weights: np.ndarray  # 1D quadrature weights over one pixel, summing to 1
+    centre: np.ndarray  # flat indices of the pixel-centre samples, row-major (H * W)
+
+    def pixel_mean(self, x: np.ndarray) -> np.ndarray:
+        """(..., rows * cols) samples -> (..., H, W) area averages."""
+        x = x.reshape(*x.shape[:-1], self.rows, self.cols)
+        n, s = len(self.weights), self.ss
+        h, w = (self.rows - n) // s + 1, (self.cols - n) // s + 1
+        x = sum(wk * x[..., k : k + s * (h - 1) + 1 : s, :] for k, wk in enumerate(self.weights))
+        return sum(wk * x[..., k : k + s * (w - 1) + 1 : s] for k, wk in enumerate(self.weights))
+
+
+@functools.lru_cache(maxsize=4)
+def sample_grid(rig: Rig, height_px: int, width_px: int, ss: int) -> SampleGrid:
+    """Cached: the rays depend on the rig and the resolution only."""
     cam = rig.camera_at(width_px, height_px)
-    offs = (np.arange(ss) + 0.5) / ss
-    jj, ii = np.meshgrid(np.arange(width_px), np.arange(height_px))
-    sy, sx = np.meshgrid(offs, offs, indexing="ij")
-    uv = np.stack([jj[..., None] + sx.ravel(), ii[..., None] + sy.ravel()], -1)
-    origin, dirs = cam.pixel_rays(uv.reshape(-1, 2))
+    if ss % 2:
+        weights = np.full(ss, 1 / ss, np.float32)
+        ys = (np.arange(ss * height_px) + 0.5) / ss
+        xs = (np.arange(ss * width_px) + 0.5) / ss
+    else:
+        weights = np.full(ss + 1, 1 / ss, np.float32)
+        weights[[0, -1]] /= 2
+        ys = np.arange(ss * height_px + 1) / ss
+        xs = np.arange(ss * width_px + 1) / ss
+    uu, vv = np.meshgrid(xs, ys)
+    origin, dirs = cam.pixel_rays(np.stack([uu, vv], -1).reshape(-1, 2))
     origins = np.broadcast_to(origin.astype(np.float32), dirs.shape).copy()
     dirs = dirs.astype(np.float32)
     origins.flags.writeable = dirs.flags.writeable = False
-    return origins, dirs
+    ci = np.arange(height_px) * ss + ss // 2
+    cj = np.arange(width_px) * ss + ss // 2
+    centre = (ci[:, None] * len(xs) + cj[None, :]).ravel()
+    return SampleGrid(origins, dirs, len(ys), len(xs), ss, weights, centre)
 
 
 def render_scene(
@@ -196,28 +237,26 @@ def render_scene(
     caster = RayCaster(scene)
     H, W, ss = height_px, width_px, cfg.supersample
 
-    # ground truth from the pixel-centre rays
-    eps = cfg.shadow_epsilon_mm
-    pts, nrm, _, hit = caster.intersect(*camera_rays(rig, H, W, 1), exact=True)
-    if not hit.all():
+    grid = sample_grid(rig, H, W, ss)
+    # float32 keeps projector columns to ~1e-4 px for image formation and lit tests
+    pts, nrm, albedo, prim = caster.intersect(grid.origins, grid.dirs)
+    if (prim < 0).any():
         raise ValueError(
-            f"{(~hit).sum()} camera rays hit nothing; the ground plane must fill the view"
+            f"{(prim < 0).sum()} camera rays hit nothing; the ground plane must fill the view"
         )
-    depth = cam.depth(pts).reshape(H, W).astype(np.float32)
-    # lit tests and projector columns in float32 (~1e-4 px), depth above in float64
-    pts32, nrm32 = pts.astype(np.float32), nrm.astype(np.float32)
-    shadow_origins = pts32 + np.float32(eps) * nrm32
-    lit_gt, coord_gt = {}, {}
+    # ground truth from the pixel-centre samples, hit points refined in float64
+    c = grid.centre
+    exact = caster.exact_points(grid.origins[c], grid.dirs[c], prim[c])
+    depth = cam.depth(exact).reshape(H, W).astype(np.float32)
+    shadow_origins = pts + np.float32(cfg.shadow_epsilon_mm) * nrm
+    u_all, geom_all, lit_gt, coord_gt = {}, {}, {}, {}
     for v in views:
-        lit, u, _ = caster.lit_by(pts32, nrm32, projectors[v], ref, shadow_origins)
-        lit_gt[v] = lit.reshape(H, W)
-        coord_gt[v] = np.where(lit, u, np.nan).reshape(H, W).astype(np.float32)
+        lit, u_all[v], geom_all[v] = caster.lit_by(pts, nrm, projectors[v], ref, shadow_origins)
+        lit_gt[v] = lit[c].reshape(H, W)
+        u_exact = projectors[v].project(exact)[:, 0]
+        coord = np.where(lit[c], u_exact, np.nan)
+        coord_gt[v] = coord.reshape(H, W).astype(np.float32)
 
-    # sub-pixel rays: per-pixel sums from which every phase step follows linearly
-    # float32 keeps projector coordinates to ~1e-4 px here and halves the memory traffic
-    pts, nrm, albedo, _ = caster.intersect(*camera_rays(rig, H, W, ss), exact=False)
-    albedo = albedo.astype(np.float32)
-    shadow_origins = pts + np.float32(eps) * nrm
     harm = _pattern_harmonics(cfg)
     if images == "training":
         freqs = [fringe.resolve_frequency(fringe.train_frequency)]
@@ -225,9 +264,7 @@ def render_scene(
     else:
         freqs, steps = list(range(len(fringe.periods_px))), list(range(fringe.steps))
 
-    def pixel_mean(x):  # (..., H*W*ss*ss) -> (..., H, W), summing strided sample slices
-        x = x.reshape(*x.shape[:-1], H * W, ss * ss)
-        return (sum(x[..., i] for i in range(ss * ss)) / (ss * ss)).reshape(*x.shape[:-2], H, W)
+    pixel_mean = grid.pixel_mean
 
     base = pixel_mean(albedo * np.float32(cfg.ambient))
     if cfg.defocus_sigma_px > 0:
@@ -238,7 +275,7 @@ def render_scene(
     w_sin = (harm * np.sin(hs * deltas)).astype(np.float32)
     fringes = {}
     for v in views:
-        _, u, geom = caster.lit_by(pts, nrm, projectors[v], ref, shadow_origins)
+        u, geom = u_all.pop(v), geom_all.pop(v)
         g = albedo * (np.float32(cfg.projector_irradiance) * geom)
         for fi in freqs:
             phi = (2 * np.pi / fringe.periods_px[fi]) * u
