@@ -21,18 +21,27 @@ def test_depth_loss_is_zero_for_a_perfect_prediction_and_mixes_ssim_and_l1():
 
 def test_composite_loss_weights_and_skips_missing_outputs():
     torch.manual_seed(0)
-    batch = {"depth": torch.rand(1, 1, 32, 32), "fringes": torch.rand(1, 2, 32, 32) * 2 - 1,
-             "lit": torch.randint(0, 2, (1, 2, 32, 32)).float()}
-    out = {"depth": torch.rand(1, 1, 32, 32),
-           "aux": [torch.rand(1, 1, 16, 16), torch.rand(1, 1, 8, 8)],
-           "views": torch.zeros(1, 2, 32, 32)}
+    batch = {
+        "depth": torch.rand(1, 1, 32, 32),
+        "fringes": torch.rand(1, 2, 32, 32) * 2 - 1,
+        "lit": torch.randint(0, 2, (1, 2, 32, 32)).float(),
+    }
+    out = {
+        "depth": torch.rand(1, 1, 32, 32),
+        "aux": [torch.rand(1, 1, 16, 16), torch.rand(1, 1, 8, 8)],
+        "views": torch.zeros(1, 2, 32, 32),
+    }
     w = LossWeights()
     t = composite_loss(out, batch, w)
     expected = t["main"] + 0.5 * t["aux1"] + 0.3 * t["aux2"] + 0.2 * t["view"]
     assert float(t["loss"]) == pytest.approx(float(expected), rel=1e-6)
     assert float(t["view"]) == pytest.approx(float((batch["fringes"] ** 2).mean()), rel=1e-6)
     assert set(composite_loss({"depth": out["depth"]}, batch, w)) == {
-        "main", "main_ssim", "main_l1", "loss"}
+        "main",
+        "main_ssim",
+        "main_l1",
+        "loss",
+    }
 
 
 def test_occlusion_supervision_prefers_masks_that_match_the_lit_masks():
@@ -46,8 +55,9 @@ def test_occlusion_supervision_prefers_masks_that_match_the_lit_masks():
     t_bad = composite_loss({"depth": batch["depth"], "occlusion": bad}, batch, w)
     assert float(t_good["occlusion"]) == pytest.approx(-math.log(0.95), rel=1e-4)
     assert t_bad["occlusion"] > 10 * t_good["occlusion"]
-    assert "occlusion" not in composite_loss({"depth": batch["depth"], "occlusion": good},
-                                             batch, LossWeights())  # weight 0: the paper
+    assert "occlusion" not in composite_loss(
+        {"depth": batch["depth"], "occlusion": good}, batch, LossWeights()
+    )  # weight 0: the paper
 
 
 def test_depth_errors_pixel_means_and_per_image_rmse():
