@@ -45,27 +45,28 @@ from odmv.models.blocks import (
 LEVELS = 4  # encoder stages; the bottleneck sits at 1 / 2**LEVELS
 
 
-#: Table I rows: each adds to the previous one.
-ABLATION_ROWS: dict[str, dict[str, bool]] = {
-    "baseline": dict(
-        residual=False, attention_gates=False, aspp=False, rve=False, ocd_oaf=False, ssvr=False
-    ),
-    "rb_ag": dict(
-        residual=True, attention_gates=True, aspp=False, rve=False, ocd_oaf=False, ssvr=False
-    ),
-    "aspp": dict(
-        residual=True, attention_gates=True, aspp=True, rve=False, ocd_oaf=False, ssvr=False
-    ),
-    "rve": dict(
-        residual=True, attention_gates=True, aspp=True, rve=True, ocd_oaf=False, ssvr=False
-    ),
-    "ocd_oaf": dict(
-        residual=True, attention_gates=True, aspp=True, rve=True, ocd_oaf=True, ssvr=False
-    ),
-    "multitask": dict(
-        residual=True, attention_gates=True, aspp=True, rve=True, ocd_oaf=True, ssvr=True
-    ),
-}
+SWITCHES = ("residual", "attention_gates", "aspp", "rve", "ocd_oaf", "ssvr")
+# Table I rows in order, with the switches each row adds to the previous one
+_ROW_ADDS = (
+    ("baseline", ()),
+    ("rb_ag", ("residual", "attention_gates")),
+    ("aspp", ("aspp",)),
+    ("rve", ("rve",)),
+    ("ocd_oaf", ("ocd_oaf",)),
+    ("multitask", ("ssvr",)),
+)
+
+
+def _rows() -> dict[str, dict[str, bool]]:
+    rows, on = {}, set()
+    for row, adds in _ROW_ADDS:
+        on |= set(adds)
+        rows[row] = {k: k in on for k in SWITCHES}
+    return rows
+
+
+#: Table I rows: switch settings per row, each row adding to the previous one.
+ABLATION_ROWS: dict[str, dict[str, bool]] = _rows()
 
 
 class ResidualViewEncoder(nn.Module):
@@ -118,19 +119,12 @@ class ODMVNet(nn.Module):
             ocd_oaf=ocd_oaf,
             ssvr=ssvr,
         )
-        flags = {k: ABLATION_ROWS[ablation][k] if v is None else bool(v) for k, v in given.items()}
-        residual, attention_gates, aspp = flags["residual"], flags["attention_gates"], flags["aspp"]
-        rve, ocd_oaf, ssvr = flags["rve"], flags["ocd_oaf"], flags["ssvr"]
+        self.flags = {
+            k: ABLATION_ROWS[ablation][k] if v is None else bool(v) for k, v in given.items()
+        }
+        residual, attention_gates, aspp, rve, ocd_oaf, ssvr = (self.flags[k] for k in SWITCHES)
         w = [base_width * 2**i for i in range(LEVELS + 1)]
         self.widths = w
-        self.flags = dict(
-            residual=residual,
-            attention_gates=attention_gates,
-            aspp=aspp,
-            rve=rve,
-            ocd_oaf=ocd_oaf,
-            ssvr=ssvr,
-        )
         self.checkpointing = activation_checkpointing
         self.stem = ResidualViewEncoder(w[0]) if rve else conv_bn_act(1, w[0])
         self.encoder = nn.ModuleList(
