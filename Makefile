@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 # resolving a multi-GB CUDA build for the torch requirement of the package.
 TORCH  := torch==2.13.0
 
-.PHONY: install test lint demo clean
+.PHONY: install test lint demo reproduce clean
 
 install: $(VENV)/.installed
 
@@ -23,6 +23,12 @@ test: install
 # Renders the quickstart dataset, trains the small ODMV-Net on the CPU and evaluates it.
 demo: install
 	$(BIN)/python -m odmv.demo
+
+# The paper's three experiments, the classical row and the report (resumable):
+#   make reproduce PROTOCOL=mini    (2-core CPU, about 90 min)   PROTOCOL=paper (a GPU)
+PROTOCOL ?= mini
+reproduce: install
+	$(BIN)/python -m odmv.reproduce protocol=$(PROTOCOL)
 
 lint: install
 	$(BIN)/ruff check .

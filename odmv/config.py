@@ -35,7 +35,13 @@ def n_views(views) -> int:
     return len(view_list(views))
 
 
+def csv_list(values) -> str:
+    """[0, 1] -> "0,1": a list as a Hydra sweep value (sweep configs' seeds)."""
+    return ",".join(str(v) for v in values)
+
+
 for _name, _fn in (
+    ("odmv.csv", csv_list),
     ("odmv.views", view_list),
     ("odmv.n_views", n_views),
     ("odmv.hash", settings_hash),

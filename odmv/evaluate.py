@@ -118,6 +118,7 @@ def evaluate(cfg: DictConfig) -> dict:
         enable_progress_bar=False,
         enable_model_summary=False,
     )
+    module.test_dir = out_dir
     results = trainer.test(module, datamodule=dm, verbose=False)[0]
     metrics = {k: float(v) for k, v in results.items()}
     const = mean_train_depth(dm)
@@ -130,8 +131,8 @@ def evaluate(cfg: DictConfig) -> dict:
     with torch.no_grad():
         for i in range(min(cfg.figures, len(ds))):
             sample = ds[i]
-            pred = module(sample["fringes"][None])["depth"]
-            pred_mm = module.norm.depth_mm(pred)[0, 0].numpy()
+            out = module(sample["fringes"][None])
+            pred_mm = module.depth_mm(out)[0, 0].numpy()
             save_figure(
                 out_dir / "figures" / f"{sample['scene_id']}.png",
                 sample,
@@ -147,7 +148,7 @@ def report(metrics: dict) -> str:
     """Two lines: the model and the constant-depth predictor, in mm."""
     return (
         f"model     : MAE {metrics['test/mae_mm']:.4f} mm, RMSE {metrics['test/rmse_mm']:.4f} mm"
-        f" (shadowed pixels: MAE {metrics['test/mae_mm_shadow']:.4f} mm)\n"
+        f" (shadowed pixels: MAE {metrics['test/mae_mm_shadowed']:.4f} mm)\n"
         f"constant  : MAE {metrics['constant/mae_mm']:.4f} mm, "
         f"RMSE {metrics['constant/rmse_mm']:.4f} mm (predicting "
         f"{metrics['constant/depth_mm']:.3f} mm everywhere)"

@@ -8,6 +8,8 @@ with phi = 2 pi u / P, u the projector column (px) and P the period (px).
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from odmv.rig import Camera, Projector
@@ -55,3 +57,78 @@ def triangulate_depth(u_px: np.ndarray, camera: Camera, projector: Projector) ->
     b = P[0, 3] - u_px * P[2, 3]
     t = -(a @ origin + b) / (a * d).sum(-1)
     return camera.depth(origin + t[..., None] * d)
+
+
+def period_in_camera_px(period_px: float, camera: Camera, projector: Projector) -> float:
+    """A fringe period (projector px) as the camera sees it on the reference plane (camera px),
+    at the projector's principal point: tells which sequences the camera resolves."""
+    cx, cy = projector.K[0, 2], projector.K[1, 2]
+    origin, d = projector.rays(np.array([[cx, cy], [cx + period_px, cy]]))
+    pts = origin + (-origin[2] / d[:, 2])[:, None] * d
+    uv = camera.project(pts)
+    return float(np.linalg.norm(uv[1] - uv[0]))
+
+
+def reconstruct_view(
+    stack: np.ndarray,
+    periods_px: list[float],
+    camera: Camera,
+    projector: Projector,
+    min_modulation: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One projector's sequences (F, N, H, W; linear intensity) -> depth (mm, NaN where
+    rejected) and the modulation of the finest sequence.
+
+    Rejected: modulation below ``min_modulation`` in any sequence (unlit, shadowed, or a mixed
+    pixel whose surfaces cancel), and pixels where consecutive unwrapping levels disagree by more
+    than a quarter of the finer period (a wrong fringe order, typical of mixed pixels at edges).
+    """
+    phases, mods = zip(*(wrapped_phase(s) for s in stack), strict=True)
+    order = np.argsort(periods_px)[::-1]  # coarse to fine
+    ok = np.logical_and.reduce([m >= min_modulation for m in mods])
+    u = phases[order[0]] / (2 * np.pi) * periods_px[order[0]]
+    for i in order[1:]:
+        p = periods_px[i]
+        k = np.round((2 * np.pi * u / p - phases[i]) / (2 * np.pi))
+        fine = (phases[i] + 2 * np.pi * k) / (2 * np.pi) * p
+        ok &= np.abs(fine - u) < p / 4
+        u = fine
+    depth = triangulate_depth(u, camera, projector)
+    ok &= np.isfinite(depth)
+    return np.where(ok, depth, np.nan), mods[order[-1]]
+
+
+def _nanmedian(a: np.ndarray) -> np.ndarray:
+    """Median over axis 0 ignoring NaN; NaN (without a warning) where all are NaN."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmedian(a, 0)
+
+
+def fuse_views(
+    depths: np.ndarray, modulations: np.ndarray, tolerance_mm: float, edge_mm: float
+) -> np.ndarray:
+    """Per-projector depths (V, H, W; NaN = none) -> one depth map (NaN where rejected).
+
+    Views within ``tolerance_mm`` of the per-pixel median are averaged with weights B**2 (the
+    phase variance of N-step shifting falls as 1 / B**2); a pixel where no majority of its views
+    agrees (e.g. two views that disagree: nothing says which is right) is rejected. Then pixels
+    that differ from the median of their 3 x 3 neighbourhood by more than ``edge_mm`` (mixed
+    pixels at depth edges, flying pixels) are rejected."""
+    seen = np.isfinite(depths)
+    agree = seen & (
+        np.abs(np.nan_to_num(depths) - np.nan_to_num(_nanmedian(depths))) <= tolerance_mm
+    )
+    w = np.where(agree, modulations.astype(np.float64) ** 2, 0.0)
+    total = w.sum(0)
+    fused = np.full(depths.shape[1:], np.nan)
+    ok = total > 0
+    fused[ok] = (np.nan_to_num(depths) * w).sum(0)[ok] / total[ok]
+    fused[2 * agree.sum(0) <= seen.sum(0)] = np.nan  # no majority agrees
+    h, wd = fused.shape
+    padded = np.pad(fused, 1, mode="edge")
+    local = _nanmedian(
+        np.stack([padded[i : i + h, j : j + wd] for i in range(3) for j in range(3)])
+    )
+    fused[np.abs(fused - local) > edge_mm] = np.nan
+    return fused

@@ -4,13 +4,32 @@ MAE and MSE are averaged over all pixels of the split; RMSE is the mean of per-i
 which is how the paper's figures relate (its RMSE 0.1741 mm is below sqrt(MSE) = 0.2007 mm, as
 the mean of square roots must be). A mask selects the pixels (all valid ones, or those shadowed
 in at least one input view, where occlusion handling matters); images with no selected pixel
-do not count towards the RMSE.
+do not count towards the RMSE. MSE is in mm² (the paper's tables label it "mm").
+
+Subsets (odmv.data.subsets): ``all`` valid pixels, ``shadowed`` (inside some projector's
+footprint, unlit by one that covers it) and ``unlit`` (lit by no projector), all from the
+dataset's ground truth of every projector, so models with different inputs compare.
 """
 
 from __future__ import annotations
 
 import torch
 from torchmetrics import Metric
+
+SUBSETS = ("all", "shadowed", "unlit")
+
+
+def per_image_errors(
+    pred_mm: torch.Tensor, target_mm: torch.Tensor, mask: torch.Tensor
+) -> dict[str, torch.Tensor]:
+    """Per image (B): MAE, MSE (mm²), RMSE over the masked pixels (NaN where none) and pixels."""
+    m = mask.to(torch.float64).flatten(1)
+    err = (pred_mm.to(torch.float64) - target_mm.to(torch.float64)).flatten(1) * m
+    n = m.sum(1)
+    nan = torch.full_like(n, float("nan"))
+    mae = torch.where(n > 0, err.abs().sum(1) / n.clamp_min(1), nan)
+    mse = torch.where(n > 0, (err**2).sum(1) / n.clamp_min(1), nan)
+    return {"mae_mm": mae, "mse_mm2": mse, "rmse_mm": mse.sqrt(), "pixels": n}
 
 
 class DepthErrors(Metric):

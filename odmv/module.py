@@ -7,16 +7,20 @@ from a checkpoint alone (:func:`load_module`).
 
 from __future__ import annotations
 
+import csv
+import os
 from dataclasses import asdict
+from pathlib import Path
 
 import hydra
 import lightning as L
+import numpy as np
 import torch
 from lightning.pytorch.utilities import rank_zero_only
 
 from odmv.data.normalize import Normalization
 from odmv.losses import LossWeights, composite_loss
-from odmv.metrics import DepthErrors
+from odmv.metrics import SUBSETS, DepthErrors, per_image_errors
 
 
 def build_net(net_cfg: dict) -> torch.nn.Module:
@@ -41,12 +45,12 @@ class FPPModule(L.LightningModule):
         self.norm = Normalization(**norm) if norm else None
         self.weights = LossWeights(**(loss or {}))
         self.metrics = torch.nn.ModuleDict(
-            {
-                f"{stage}_{subset}": DepthErrors()
-                for stage in ("val", "test")
-                for subset in ("all", "shadow")
-            }
+            {f"{stage}_{subset}": DepthErrors() for stage in ("val", "test") for subset in SUBSETS}
         )
+        # where a test writes its per-scene metrics and predictions (set by the apps)
+        self.test_dir: Path | None = None
+        self._scene_rows: list[dict] = []
+        self._predictions: dict[str, list] = {}
 
     def setup(self, stage: str) -> None:
         """Take units and views from the data module; they are saved with the checkpoint."""
@@ -75,39 +79,71 @@ class FPPModule(L.LightningModule):
                 self.log(f"train/loss_{k}", v, batch_size=bs)
         return terms["loss"]
 
-    def _evaluate(self, batch, stage: str) -> dict:
+    def depth_mm(self, out: dict) -> torch.Tensor:
+        """The net's depth in mm, converted in float32 whatever the autocast precision."""
+        with torch.autocast(out["depth"].device.type, enabled=False):
+            return self.norm.depth_mm(out["depth"].float())
+
+    def _evaluate(self, batch, stage: str) -> tuple[dict, torch.Tensor]:
         out = self(batch["fringes"])
         terms = composite_loss(out, batch, self.weights)
-        pred_mm = self.norm.depth_mm(out["depth"])
-        valid = batch["valid"]
-        shadowed = (batch["lit"] < 0.5).any(1, keepdim=True).float() * valid
-        self.metrics[f"{stage}_all"].update(pred_mm, batch["depth_mm"], valid)
-        self.metrics[f"{stage}_shadow"].update(pred_mm, batch["depth_mm"], shadowed)
+        pred_mm = self.depth_mm(out)
+        masks = subset_masks(batch)
+        for subset, mask in masks.items():
+            self.metrics[f"{stage}_{subset}"].update(pred_mm, batch["depth_mm"], mask)
         self.log(
             f"{stage}/loss", terms["loss"], batch_size=batch["fringes"].shape[0], sync_dist=True
         )
-        return out
+        return out, pred_mm
 
     def validation_step(self, batch, batch_idx):
-        out = self._evaluate(batch, "val")
+        out, _ = self._evaluate(batch, "val")
         if batch_idx == 0 and self.hparams.log_images:
             self._log_images(batch, out)
 
     def test_step(self, batch, _):
-        self._evaluate(batch, "test")
+        _, pred_mm = self._evaluate(batch, "test")
+        if self.test_dir is None:
+            return
+        per = {
+            k: per_image_errors(pred_mm, batch["depth_mm"], m)
+            for k, m in subset_masks(batch).items()
+        }
+        for i, sid in enumerate(batch["scene_id"]):
+            row = {"scene": sid, "family": batch["family"][i]}
+            for subset, errs in per.items():
+                for name, values in errs.items():
+                    row[f"{name}_{subset}" if subset != "all" else name] = float(values[i])
+            self._scene_rows.append(row)
+        for key, value in (
+            ("scene_id", list(batch["scene_id"])),
+            ("pred_mm", pred_mm[:, 0].float().cpu().numpy()),
+            ("depth_mm", batch["depth_mm"][:, 0].cpu().numpy()),
+        ):
+            self._predictions.setdefault(key, []).append(value)
 
     def _log_metrics(self, stage: str) -> None:
-        for subset, suffix in (("all", ""), ("shadow", "_shadow")):
+        valid = self.metrics[f"{stage}_all"].pixels
+        for subset in SUBSETS:
             metric = self.metrics[f"{stage}_{subset}"]
+            suffix = "" if subset == "all" else f"_{subset}"
             for name, value in metric.compute().items():
                 self.log(f"{stage}/{name}{suffix}", value.float(), sync_dist=False)
+            if subset != "all":  # the subset's share of the valid pixels
+                share = metric.pixels / valid.clamp_min(1)
+                self.log(f"{stage}/share{suffix}", share.float(), sync_dist=False)
             metric.reset()
 
     def on_validation_epoch_end(self):
         self._log_metrics("val")
 
+    def on_test_epoch_start(self):
+        self._scene_rows, self._predictions = [], {}
+
     def on_test_epoch_end(self):
         self._log_metrics("test")
+        if self.test_dir is not None and self._scene_rows:
+            write_test_outputs(Path(self.test_dir), self._scene_rows, self._predictions)
 
     # ---------------------------------------------------------------- optimisation
     def configure_optimizers(self):
@@ -127,7 +163,7 @@ class FPPModule(L.LightningModule):
             return
         n = min(self.hparams.log_images, batch["fringes"].shape[0])
         gt = batch["depth_mm"][:n]
-        pred = self.norm.depth_mm(out["depth"][:n]).detach()
+        pred = self.depth_mm(out)[:n].detach()
         lo, hi = gt.amin(), gt.amax()
         step = self.global_step
 
@@ -150,6 +186,36 @@ class FPPModule(L.LightningModule):
             lg.log_hyperparams(
                 {"parameters": n, **{f"loss/{k}": str(v) for k, v in asdict(self.weights).items()}}
             )
+
+
+def subset_masks(batch: dict) -> dict[str, torch.Tensor]:
+    """Metric pixel masks (B x 1 x H x W) from the batch's ground truth: odmv.data.subsets."""
+    valid = batch["valid"]
+    return {"all": valid, "shadowed": batch["shadowed"] * valid, "unlit": batch["unlit"] * valid}
+
+
+SCENES_CSV = "test_scenes.csv"
+PREDICTIONS = "test_predictions.npz"
+
+
+@rank_zero_only
+def write_test_outputs(folder: Path, rows: list[dict], predictions: dict[str, list]) -> None:
+    """Per-scene metrics (CSV) and the test predictions in mm (npz), each written atomically."""
+    folder.mkdir(parents=True, exist_ok=True)
+    tmp = folder / f".{SCENES_CSV}.{os.getpid()}.tmp"
+    with tmp.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    os.replace(tmp, folder / SCENES_CSV)
+    arrays = {
+        "scene_id": np.array([s for chunk in predictions["scene_id"] for s in chunk]),
+        "pred_mm": np.concatenate(predictions["pred_mm"]).astype(np.float32),
+        "depth_mm": np.concatenate(predictions["depth_mm"]).astype(np.float32),
+    }
+    tmp = folder / f".{PREDICTIONS}.{os.getpid()}.tmp.npz"
+    np.savez_compressed(tmp, **arrays)
+    os.replace(tmp, folder / PREDICTIONS)
 
 
 def load_module(ckpt_path: str, map_location="cpu") -> FPPModule:

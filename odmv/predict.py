@@ -98,7 +98,7 @@ def predict(cfg: DictConfig) -> dict[str, Path]:
     fringes, rig = read_inputs(Path(cfg.input), views, size, cfg.manifest)
     x = module.norm.fringes(torch.from_numpy(np.ascontiguousarray(fringes)))[None]
     with torch.no_grad():
-        depth_mm = module.norm.depth_mm(module(x)["depth"])[0, 0].numpy().astype(np.float32)
+        depth_mm = module.depth_mm(module(x))[0, 0].numpy().astype(np.float32)
     out = Path(cfg.out or cfg.paths.output_dir)
     depth_path = write_exr(out / "depth.exr", {"Z": depth_mm})
     cam = rig.camera_at(size[1], size[0])

@@ -41,7 +41,9 @@ class CollectResults(Callback):
             key, _, value = ov.partition("=")
             row[key.lstrip("+~")] = value
         if job_return.status == JobStatus.COMPLETED and isinstance(job_return.return_value, dict):
-            row.update(job_return.return_value)
+            for key, value in job_return.return_value.items():
+                if key not in row:  # the override columns stay as the user typed them
+                    row[key] = "+".join(map(str, value)) if isinstance(value, list) else value
             row["status"] = "ok"
         else:
             row["status"] = "failed"

@@ -9,6 +9,7 @@ with the run's overrides) into the run folder; multiruns also collect every job 
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import hydra
@@ -57,18 +58,41 @@ def train(cfg: DictConfig) -> dict[str, float]:
     dm, module, trainer = build(cfg)
     for lg in trainer.loggers:
         lg.log_hyperparams(_flat(OmegaConf.to_container(cfg, resolve=True)))
+    t0 = time.perf_counter()
     trainer.fit(module, datamodule=dm, ckpt_path=cfg.ckpt_path)
+    train_seconds = time.perf_counter() - t0
     dm.save_split(out_dir / "split.json")
-    metrics: dict[str, float] = {}
+    metrics: dict = {}
     if cfg.test:
         best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
+        module.test_dir = out_dir
         results = trainer.test(module, datamodule=dm, ckpt_path=best or None, weights_only=True)
         metrics = {k: float(v) for k, v in results[0].items()}
-        metrics["best_checkpoint"] = best
-        (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
         overrides = _task_overrides()
-        append_row(out_dir / "metrics.csv", {"overrides": " ".join(overrides), **metrics})
+        metrics.update(
+            best_checkpoint=best,
+            train_seconds=round(train_seconds, 1),
+            epochs=trainer.current_epoch,
+            parameters=sum(p.numel() for p in module.net.parameters()),
+            model=cfg.model.name,
+            views=list(dm.spec.views),
+            ablation=cfg.get("ablation"),
+            seed=cfg.seed,
+            dataset=str(Path(dm.root).resolve()),
+            overrides=" ".join(overrides),
+        )
+        _write_json(out_dir / "metrics.json", metrics)
+        append_row(
+            out_dir / "metrics.csv",
+            {k: v for k, v in metrics.items() if not isinstance(v, list)},
+        )
     return metrics
+
+
+def _write_json(path: Path, data: dict) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(data, indent=1) + "\n")
+    tmp.replace(path)
 
 
 def _task_overrides() -> list[str]:
@@ -85,7 +109,7 @@ def main(cfg: DictConfig) -> dict[str, float]:
     if metrics:
         print(
             "  test: "
-            + ", ".join(f"{k}={v:.4f}" for k, v in metrics.items() if isinstance(v, float))
+            + ", ".join(f"{k}={v:.4f}" for k, v in metrics.items() if k.startswith("test/"))
         )
     return metrics
 

@@ -18,6 +18,7 @@ from odmv.io import exr
 from odmv.io.manifest import (
     DEPTH_CHANNEL,
     DEPTH_FILE,
+    FOOTPRINT_FILE,
     FRINGE_CHANNEL,
     LIT_FILE,
     PROJ_COORD_FILE,
@@ -67,9 +68,10 @@ def _check_values(path: Path, data: dict[str, np.ndarray]) -> str | None:
         a = a.astype(np.float32)
         if name == DEPTH_FILE and not (np.isfinite(a).all() and (a > 0).all()):
             return f"{path}: depth must be finite and positive everywhere ({np.isnan(a).sum()} NaN)"
-        if name == LIT_FILE and not np.isin(a, (0.0, 1.0)).all():
-            return f"{path}: lit mask channel {c!r} has values other than 0 and 1"
-        if name not in (DEPTH_FILE, LIT_FILE, PROJ_COORD_FILE) and not np.isfinite(a).all():
+        if name in (LIT_FILE, FOOTPRINT_FILE) and not np.isin(a, (0.0, 1.0)).all():
+            return f"{path}: mask channel {c!r} has values other than 0 and 1"
+        masks = (DEPTH_FILE, LIT_FILE, FOOTPRINT_FILE, PROJ_COORD_FILE)
+        if name not in masks and not np.isfinite(a).all():
             return f"{path}: non-finite pixel values in channel {c!r}"
     return None
 
@@ -95,6 +97,8 @@ def validate(root: str | Path, deep: bool = True) -> Report:
         report.images += len(checks)
         checks += [(sdir / DEPTH_FILE, [DEPTH_CHANNEL]), (sdir / LIT_FILE, views)]
         checks.append((sdir / PROJ_COORD_FILE, views))
+        if (sdir / FOOTPRINT_FILE).exists():  # optional (odmv.data.subsets)
+            checks.append((sdir / FOOTPRINT_FILE, views))
         for path, channels in checks:
             problem = _check_image(path, channels, shape, deep)
             if problem:
@@ -114,12 +118,18 @@ def validate(root: str | Path, deep: bool = True) -> Report:
 
 
 def _check_coords(sdir: Path, views: list[str]) -> str | None:
-    """Projector coordinates must be finite exactly where the projector lights the pixel."""
+    """Projector coordinates must be finite exactly where the projector lights the pixel, and
+    a projector lights only pixels inside its footprint."""
     lit = exr.read_exr(sdir / LIT_FILE, views)
     coord = exr.read_exr(sdir / PROJ_COORD_FILE, views)
     for v in views:
         if not np.array_equal(np.isfinite(coord[v]), lit[v] > 0.5):
             return f"{sdir / PROJ_COORD_FILE}: channel {v!r} is not finite exactly on lit pixels"
+    if (sdir / FOOTPRINT_FILE).exists():
+        foot = exr.read_exr(sdir / FOOTPRINT_FILE, views)
+        for v in views:
+            if ((lit[v] > 0.5) & (foot[v] < 0.5)).any():
+                return f"{sdir / FOOTPRINT_FILE}: channel {v!r} misses pixels that {v} lights"
     return None
 
 

@@ -213,3 +213,38 @@ def test_phase_targets_match_the_phase_shifting_phase(tiny_dataset, tmp_path):
     err = np.abs(np.angle(np.exp(1j * (phase - target))))[good]
     assert good.mean() > 0.3 and np.median(err) < 0.05
     assert (sin[~lit] == 0).all() and (cos[~lit] == 0).all()
+
+
+def test_a_preset_never_renders_into_a_named_dataset(tmp_path):
+    """experiment=mini fills data.simulate; with data=exr the named folder is only read."""
+    import hydra
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(
+            "train", overrides=["experiment=mini", "data=exr", f"root={tmp_path / 'mine'}"]
+        )
+    dm = hydra.utils.instantiate(cfg.data, _convert_="all")
+    with pytest.raises(DataError, match=r"mine/manifest.json: no dataset here"):
+        dm.prepare_data()
+    assert not (tmp_path / "mine").exists()
+
+
+def test_metric_subsets_use_every_projector_whatever_the_views(tiny_dataset, tmp_path):
+    one = _dm(tiny_dataset, tmp_path, views=VIEW_SETS[1]).datasets["test"][0]
+    four = _dm(tiny_dataset, tmp_path, views=VIEW_SETS[4]).datasets["test"][0]
+    for key in ("shadowed", "unlit"):
+        assert one[key].shape == (1, 64, 64)
+        assert torch.equal(one[key], four[key])
+    assert one["shadowed"].sum() > 0 and one["unlit"].sum() > 0
+    lit = four["lit"] > 0.5
+    assert torch.equal(four["unlit"][0] > 0.5, ~lit.any(0))
+    assert one["family"] in ("primitives", "pcb", "freeform")
+
+
+def test_subsets_without_footprint_file_fall_back_to_the_rig(dataset_copy, tmp_path):
+    with_file = _dm(dataset_copy, tmp_path).datasets["test"][0]
+    for f in dataset_copy.glob("scenes/*/footprint.exr"):
+        f.unlink()
+    without = _dm(dataset_copy, tmp_path).datasets["test"][0]
+    assert (with_file["shadowed"] == without["shadowed"]).float().mean() > 0.99
+    assert torch.equal(with_file["unlit"], without["unlit"])

@@ -122,3 +122,19 @@ def test_manifest_round_trip(dataset):
 def test_missing_manifest(tmp_path):
     problems = validate(tmp_path).problems
     assert len(problems) == 1 and "no manifest" in problems[0]
+
+
+def test_footprint_is_checked_when_present(tiny_dataset, tmp_path):
+    import shutil
+
+    from odmv.io.exr import read_exr
+    from odmv.io.manifest import FOOTPRINT_FILE
+
+    root = shutil.copytree(tiny_dataset, tmp_path / "copy")
+    assert validate(root).ok
+    path = root / "scenes" / "000000" / FOOTPRINT_FILE
+    foot = read_exr(path, list(VIEWS))
+    foot["up"] = np.zeros_like(foot["up"])  # up lights pixels outside its footprint now
+    write_exr(path, foot)
+    problems = validate(root).problems
+    assert problems == [f"{path}: channel 'up' misses pixels that up lights"]

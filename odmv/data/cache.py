@@ -22,6 +22,8 @@ _ARRAYS = {
     "fringes": np.float32,
     "depth_mm": np.float32,
     "lit": np.uint8,
+    "shadowed": np.uint8,
+    "unlit": np.uint8,
     "phase_target": np.float32,
 }
 
@@ -77,6 +79,8 @@ class ArrayCache:
             "fringes": (s, h, w),
             "depth_mm": (1, h, w),
             "lit": (s, h, w),
+            "shadowed": (1, h, w),
+            "unlit": (1, h, w),
             "phase_target": (2 * s, h, w),
         }
         names = _names(spec)

@@ -29,6 +29,8 @@ class FPPDataModule(L.LightningDataModule):
 
     ``simulate``: settings for :class:`odmv.sim.writer.SimSettings` (minus ``out``) used to render
     the dataset into ``root`` when ``root`` holds no manifest; None means the data must exist.
+    ``render``: False for a dataset the user names (``data=exr``): it is read, never written,
+    even when a preset has filled in ``simulate``.
     """
 
     def __init__(
@@ -50,6 +52,7 @@ class FPPDataModule(L.LightningDataModule):
         depth_half_range_mm: float = 10.0,
         intensity_max: float | None = None,
         simulate: dict | None = None,
+        render: bool = True,
         progress: bool = True,
     ):
         super().__init__()
@@ -65,7 +68,7 @@ class FPPDataModule(L.LightningDataModule):
         self.cache = cache
         self.cache_dir = Path(cache_dir) if cache_dir else self.root.parent / ".odmv-cache"
         self.depth_half_range_mm, self.intensity_max = depth_half_range_mm, intensity_max
-        self.simulate = simulate
+        self.simulate = simulate if render else None
         self.progress = progress
         self.manifest: Manifest | None = None
         self.spec: SampleSpec | None = None

@@ -17,10 +17,12 @@ import torch
 import torch.nn.functional as F
 
 from odmv.data.normalize import Normalization
+from odmv.data.subsets import footprint_from_depth, subset_masks
 from odmv.io.exr import ExrError, read_exr
 from odmv.io.manifest import (
     DEPTH_CHANNEL,
     DEPTH_FILE,
+    FOOTPRINT_FILE,
     FRINGE_CHANNEL,
     FRINGE_DIR,
     LIT_FILE,
@@ -31,6 +33,9 @@ from odmv.io.manifest import (
     fringe_name,
 )
 from odmv.rig import check_views
+
+#: Bumped whenever a sample gains or changes an array, so stale caches are not reused.
+SAMPLE_VERSION = 2
 
 
 class DataError(ValueError):
@@ -133,7 +138,8 @@ def _read(path: Path, channels: list[str]) -> dict[str, np.ndarray]:
 
 def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]:
     """Raw arrays of one scene at ``spec``'s size: fringes (S,H,W) linear intensity,
-    depth_mm (1,H,W), lit (S,H,W) bool; with stacks also fringe_stack (S,K,H,W) and
+    depth_mm (1,H,W), lit (S,H,W) bool, the subsets shadowed and unlit (1,H,W) bool over every
+    projector of the dataset; with stacks also fringe_stack (S,K,H,W) and
     projector_coord (S,H,W, NaN where unlit); with phase also phase_target (2S,H,W: sin, cos
     of each view's input-image phase, 0 where unlit). Raises DataError naming a bad file."""
     d = m.scene_dir(sid)
@@ -154,18 +160,28 @@ def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]
         raise DataError(
             f"{d / DEPTH_FILE}: {int((~np.isfinite(depth)).sum())} non-finite depth values"
         )
-    lit_all = _read(d / LIT_FILE, list(spec.views))
-    lit = np.stack([lit_all[v] for v in spec.views]).astype(np.float32)
-    if lit.shape[1:] != shape:
+    # every projector's lit mask: the metric subsets never depend on the model's views
+    lit_all = _read(d / LIT_FILE, list(m.views))
+    lit_every = np.stack([lit_all[v] for v in m.views]) > 0.5
+    if lit_every.shape[1:] != shape:
         raise DataError(
-            f"{d / LIT_FILE}: shape {lit.shape[1:]} differs from the manifest's {shape}"
+            f"{d / LIT_FILE}: shape {lit_every.shape[1:]} differs from the manifest's {shape}"
         )
+    if (d / FOOTPRINT_FILE).is_file():
+        foot = _read(d / FOOTPRINT_FILE, list(m.views))
+        footprint = np.stack([foot[v] for v in m.views]) > 0.5
+    else:
+        footprint = footprint_from_depth(m.rig, depth, m.views)
+    subsets = subset_masks(lit_every, footprint)
+    lit = lit_every[[m.views.index(v) for v in spec.views]].astype(np.float32)
     h, w = spec.height_px, spec.width_px
     out = {
         "fringes": _resize(fringes, h, w, "area"),
         "depth_mm": _resize(depth[None], h, w, "nearest-exact"),
         "lit": _resize(lit, h, w, "nearest-exact") > 0.5,
     }
+    for name, mask in subsets.items():
+        out[name] = _resize(mask.astype(np.float32), h, w, "nearest-exact") > 0.5
     if spec.with_stacks or spec.with_phase:
         coord = _read(d / PROJ_COORD_FILE, list(spec.views))
         coord = _resize(np.stack([coord[v] for v in spec.views]), h, w, "nearest-exact")
@@ -194,13 +210,14 @@ def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]
 
 def fingerprint(m: Manifest, ids: list[str], spec: SampleSpec) -> str:
     """Changes whenever the manifest, the sample settings or any file read changes."""
-    h = hashlib.sha1()
+    h = hashlib.sha1(f"odmv-sample-v{SAMPLE_VERSION}".encode())
     h.update(json.dumps(m.to_json(), sort_keys=True).encode())
     h.update(json.dumps(spec.key(), sort_keys=True).encode())
     for sid in ids:
         d = m.scene_dir(sid)
         files = [d / FRINGE_DIR / fringe_name(v, spec.frequency, spec.step) for v in spec.views]
         files += [d / DEPTH_FILE, d / LIT_FILE] + ([d / PROJ_COORD_FILE] if spec.with_phase else [])
+        files += [d / FOOTPRINT_FILE] if (d / FOOTPRINT_FILE).is_file() else []
         for p in files:
             try:
                 st = p.stat()
@@ -221,13 +238,15 @@ class FringeDataset(torch.utils.data.Dataset):
         self, m: Manifest, ids: list[str], spec: SampleSpec, norm: Normalization, cache=None
     ):
         self.manifest, self.ids, self.spec, self.norm, self.cache = m, list(ids), spec, norm, cache
+        self.families = {s["id"]: str(s.get("family", "")) for s in m.scenes}
 
     def __len__(self) -> int:
         return len(self.ids)
 
     def __getitem__(self, i: int) -> dict:
         """fringes (S,H,W) in [-1,1]; depth (1,H,W) network units; depth_mm (1,H,W); lit (S,H,W)
-        and valid (1,H,W) as 0/1 floats; scene_id; with stacks also fringe_stack (S,K,H,W) in
+        and valid (1,H,W) as 0/1 floats; the metric subsets shadowed and unlit (1,H,W, 0/1, see
+        odmv.data.subsets); scene_id and family; with stacks also fringe_stack (S,K,H,W) in
         [-1,1] and projector_coord (S,H,W) in projector px (NaN where unlit)."""
         if self.cache is not None and not self.spec.with_stacks:
             raw = self.cache.get(i)
@@ -240,7 +259,10 @@ class FringeDataset(torch.utils.data.Dataset):
             "depth": self.norm.depth(depth_mm),
             "lit": torch.from_numpy(np.array(raw["lit"], np.float32)),
             "valid": torch.isfinite(depth_mm).float(),
+            "shadowed": torch.from_numpy(np.array(raw["shadowed"], np.float32)),
+            "unlit": torch.from_numpy(np.array(raw["unlit"], np.float32)),
             "scene_id": self.ids[i],
+            "family": self.families.get(self.ids[i], ""),
         }
         if self.spec.with_phase:
             sample["phase_target"] = torch.from_numpy(np.array(raw["phase_target"], np.float32))

@@ -21,6 +21,9 @@ IMAGE_MODES = ("full", "training")
 
 DEPTH_FILE = "depth.exr"  # channel "Z": camera-axis z in mm, finite everywhere
 LIT_FILE = "lit.exr"  # one channel per view: 1 where that projector lights the pixel, else 0
+# one channel per view: 1 where the pixel's surface point lies inside that projector's frustum
+# (lit or not); optional: datasets without it get it from depth and the rig (odmv.data.subsets)
+FOOTPRINT_FILE = "footprint.exr"
 PROJ_COORD_FILE = "projector_coord.exr"  # one channel per view: projector px, NaN where unlit
 SCENE_SPEC_FILE = "scene.json"  # what the scene was made of, enough to re-render it
 FRINGE_DIR = "fringe"

@@ -28,6 +28,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from odmv.models.blocks import Float32Conv2d, Float32ConvTranspose2d
+
 
 def _check(x: torch.Tensor, levels: int, name: str) -> None:
     if x.ndim != 4:
@@ -101,7 +103,7 @@ class UNet(nn.Module):
         widths = _widths(base_width)
         self.encoder = _UEncoder(in_channels, widths, dropout)
         self.decoder = _UDecoder(widths)
-        self.head = nn.Conv2d(widths[0], 1, 1)
+        self.head = Float32Conv2d(widths[0], 1, 1)
         self.levels = len(widths) - 1
 
     def forward(self, x):
@@ -120,16 +122,16 @@ class HNet(nn.Module):
         self.decoder = _UDecoder(widths)
         # guidance taps: bottleneck (1/2^n) and decoder levels (1/2^(n-1) .. 1/1)
         tap_widths = [widths[n]] + [widths[i] for i in reversed(range(n))]
-        self.taps = nn.ModuleList(nn.Conv2d(w, 1, 1) for w in tap_widths)
+        self.taps = nn.ModuleList(Float32Conv2d(w, 1, 1) for w in tap_widths)
         self.ups = nn.ModuleList()
         for k in range(len(tap_widths)):
             factor = 2 ** (n - k) if k else 2**n
             self.ups.append(
-                nn.ConvTranspose2d(1, 1, 2 * factor, stride=factor, padding=factor // 2)
+                Float32ConvTranspose2d(1, 1, 2 * factor, stride=factor, padding=factor // 2)
                 if factor > 1
                 else nn.Identity()
             )
-        self.fuse = nn.Conv2d(len(tap_widths), 1, 1)
+        self.fuse = Float32Conv2d(len(tap_widths), 1, 1)
 
     def forward(self, x):
         _check(x, self.levels, "HNet")
@@ -224,7 +226,7 @@ class UHRNet(nn.Module):
                 _HighResFusion(w, 2, [0, 1, 3], w[2] // 2),
             ]
         )
-        self.head = nn.Conv2d(w[0], 1, 1)
+        self.head = Float32Conv2d(w[0], 1, 1)
 
     def forward(self, x):
         _check(x, self.levels, "UHRNet")
@@ -248,7 +250,7 @@ class MTLNet(nn.Module):
         self.encoder = _UEncoder(in_channels, widths, dropout)
         self.depth_decoder = _UDecoder(widths)
         self.phase_decoder = _UDecoder(widths)
-        self.depth_head = nn.Conv2d(widths[0], 1, 1)
+        self.depth_head = Float32Conv2d(widths[0], 1, 1)
         self.phase_head = nn.Conv2d(widths[0], 2 * in_channels, 1)
 
     def forward(self, x):

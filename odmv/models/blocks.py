@@ -26,6 +26,23 @@ def conv_bn_act(
     return nn.Sequential(*layers)
 
 
+class Float32Conv2d(nn.Conv2d):
+    """A regression output layer that stays float32 under autocast: in bf16 a normalized depth
+    near 1 has steps of 2**-7, i.e. 0.08 mm at the default 10 mm half range."""
+
+    def forward(self, x):
+        with torch.autocast(x.device.type, enabled=False):
+            return super().forward(x.float())
+
+
+class Float32ConvTranspose2d(nn.ConvTranspose2d):
+    """:class:`Float32Conv2d` for the learned upsampling of depth maps."""
+
+    def forward(self, x, output_size=None):
+        with torch.autocast(x.device.type, enabled=False):
+            return super().forward(x.float(), output_size)
+
+
 class PlainBlock3d(nn.Sequential):
     """Two 3x3x3 conv-BN-ReLU layers: the vanilla 3D U-Net block."""
 
@@ -140,8 +157,8 @@ class OcclusionAwareFusion(nn.Module):
 
 
 class RegressionHead(nn.Sequential):
-    """2D head: conv-BN-ReLU then a linear 1x1 conv to one channel."""
+    """2D head: conv-BN-ReLU then a linear 1x1 conv to one channel (kept in float32)."""
 
     def __init__(self, cin: int, hidden: int | None = None, cout: int = 1):
         hidden = hidden or max(8, cin // 2)
-        super().__init__(conv_bn_act(cin, hidden, dims=2), nn.Conv2d(hidden, cout, 1))
+        super().__init__(conv_bn_act(cin, hidden, dims=2), Float32Conv2d(hidden, cout, 1))

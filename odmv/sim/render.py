@@ -16,8 +16,9 @@ Fourier series in the phase, each pixel's integral reduces to a few per-pixel su
 albedo * irradiance * cos(h phi) and * sin(h phi)), from which every phase step is an exact
 linear combination: 148 images cost little more than one. Defocus (Gaussian blur of the optical
 image), sensor noise (Poisson-Gaussian, heteroscedastic Gaussian approximation) and saturation
-are applied in that order at the output resolution. Ground truth (depth, lit masks, projector
-coordinates) comes from the ray through each pixel centre and is never blended across edges.
+are applied in that order at the output resolution. Ground truth (depth, lit and footprint
+masks, projector coordinates) comes from the ray through each pixel centre and is never blended
+across edges.
 """
 
 from __future__ import annotations
@@ -100,8 +101,9 @@ class RayCaster:
         ref_mm: float,
         shadow_origins: np.ndarray,
     ):
-        """Per point: lit mask (frustum, facing and unshadowed), projector column u, and the
-        geometric irradiance factor cos(theta) * (ref / distance)^2 (0 where unlit).
+        """Per point: footprint (inside the projector frustum), lit mask (in the footprint,
+        facing the projector and unshadowed), projector column u, and the geometric irradiance
+        factor cos(theta) * (ref / distance)^2 (0 where unlit).
 
         ``shadow_origins`` are the points nudged off their surface along the normal (float32).
         """
@@ -127,7 +129,7 @@ class RayCaster:
         hits = self._embree.run(shadow_origins[idx], d32, dists=far, query="OCCLUDED")
         lit[idx[hits != -1]] = False
         geom = np.where(lit, cos_dist * (ref_mm**2) / (dist2 * np.sqrt(dist2)), 0)
-        return lit, u, geom.astype(dt, copy=False)
+        return inside, lit, u, geom.astype(dt, copy=False)
 
 
 def _pattern_harmonics(cfg: RenderConfig, n_terms: int = 12) -> np.ndarray:
@@ -162,6 +164,7 @@ class Rendered:
 
     depth_mm: np.ndarray  # float32 camera-axis z of the pixel-centre surface point
     lit: dict[str, np.ndarray]  # bool per view
+    footprint: dict[str, np.ndarray]  # bool per view: inside that projector's frustum
     projector_coord: dict[str, np.ndarray]  # float32 projector px, NaN where unlit
     fringes: dict[str, np.ndarray]  # file name (see odmv.io.manifest) -> float32 image
 
@@ -249,10 +252,13 @@ def render_scene(
     exact = caster.exact_points(grid.origins[c], grid.dirs[c], prim[c])
     depth = cam.depth(exact).reshape(H, W).astype(np.float32)
     shadow_origins = pts + np.float32(cfg.shadow_epsilon_mm) * nrm
-    u_all, geom_all, lit_gt, coord_gt = {}, {}, {}, {}
+    u_all, geom_all, lit_gt, foot_gt, coord_gt = {}, {}, {}, {}, {}
     for v in views:
-        lit, u_all[v], geom_all[v] = caster.lit_by(pts, nrm, projectors[v], ref, shadow_origins)
+        inside, lit, u_all[v], geom_all[v] = caster.lit_by(
+            pts, nrm, projectors[v], ref, shadow_origins
+        )
         lit_gt[v] = lit[c].reshape(H, W)
+        foot_gt[v] = inside[c].reshape(H, W)
         u_exact = projectors[v].project(exact)[:, 0]
         coord = np.where(lit[c], u_exact, np.nan)
         coord_gt[v] = coord.reshape(H, W).astype(np.float32)
@@ -302,7 +308,7 @@ def render_scene(
             if cfg.defocus_sigma_px > 0:
                 G = _gaussian_blur(G, cfg.defocus_sigma_px)
             fringes[uniform_name(v)] = _sensor(white * G + base, cfg, rng)
-    return Rendered(depth, lit_gt, coord_gt, fringes)
+    return Rendered(depth, lit_gt, foot_gt, coord_gt, fringes)
 
 
 def _sensor(signal: np.ndarray, cfg: RenderConfig, rng: np.random.Generator) -> np.ndarray:

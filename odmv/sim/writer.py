@@ -24,6 +24,7 @@ from odmv.io.exr import write_exr
 from odmv.io.manifest import (
     DEPTH_CHANNEL,
     DEPTH_FILE,
+    FOOTPRINT_FILE,
     FRINGE_CHANNEL,
     FRINGE_DIR,
     LIT_FILE,
@@ -198,6 +199,8 @@ def render_and_write(s: SimSettings, index: int, spec: dict | None = None) -> st
         write_exr(tmp / FRINGE_DIR / name, {FRINGE_CHANNEL: img.astype(dtype)}, s.compression)
     write_exr(tmp / DEPTH_FILE, {DEPTH_CHANNEL: r.depth_mm}, s.compression)
     write_exr(tmp / LIT_FILE, {v: m.astype(np.float16) for v, m in r.lit.items()}, s.compression)
+    foot = {v: m.astype(np.float16) for v, m in r.footprint.items()}
+    write_exr(tmp / FOOTPRINT_FILE, foot, s.compression)
     write_exr(tmp / PROJ_COORD_FILE, r.projector_coord, s.compression)
     record = {
         "id": sid,

@@ -1,0 +1,127 @@
+"""The classical reference as a model row: phase shifting on every projector, triangulation,
+fusion over the projectors that lit each pixel (odmv.fpp), scored like a network.
+
+``classical_row(root, out_dir)`` reads the full sequences of the test scenes, writes the same
+files a trained run's test writes (``metrics.json``, ``test_scenes.csv``,
+``test_predictions.npz``; NaN where nothing is reconstructed) and returns the metrics. Errors are
+over the reconstructed pixels of each subset; ``coverage`` is the share of the subset's valid
+pixels that is reconstructed.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from odmv.data.dataset import DataError, check_spec, load_scene, split_scenes
+from odmv.fpp import fuse_views, period_in_camera_px, reconstruct_view
+from odmv.io.manifest import load_manifest
+from odmv.metrics import SUBSETS, DepthErrors, per_image_errors
+from odmv.module import write_test_outputs
+
+#: Settings of the classical pipeline (documented in docs/reproduce.md).
+MIN_PERIOD_CAMERA_PX = 3.0  # finer sequences alias in the camera and are left out
+MIN_MODULATION = 0.02  # fringe amplitude B in full-scale units (noise std is about 0.003)
+TOLERANCE_MM = 0.1  # views further than this from the per-pixel median do not count
+EDGE_MM = 0.3  # mixed-pixel rejection against the 3 x 3 median
+
+
+def reconstruct_scene(stack: np.ndarray, periods: list[float], camera, projectors) -> np.ndarray:
+    """Full sequences (V, F, N, H, W) of the projectors ``projectors`` (a list) -> depth (mm,
+    NaN where rejected), using the sequences whose period the camera resolves."""
+    used = [
+        i
+        for i, p in enumerate(periods)
+        if period_in_camera_px(p, camera, projectors[0]) >= MIN_PERIOD_CAMERA_PX
+    ]
+    if len(used) < 1 or max(periods[i] for i in used) < max(periods):
+        raise DataError(f"classical: the coarsest period must be resolved (periods {periods})")
+    depths, mods = [], []
+    for view_stack, proj in zip(stack, projectors, strict=True):
+        d, m = reconstruct_view(
+            view_stack[used], [periods[i] for i in used], camera, proj, MIN_MODULATION
+        )
+        depths.append(d)
+        mods.append(m)
+    return fuse_views(np.stack(depths), np.stack(mods), TOLERANCE_MM, EDGE_MM)
+
+
+def classical_row(
+    root: str | Path, out_dir: str | Path, resolution=None, split: str = "test"
+) -> dict:
+    """Reconstruct every scene of ``split`` of the dataset at ``root`` classically, from the
+    images resized to ``resolution`` as the networks see them (None: as stored); write and
+    return its metrics (keys like a trained run's: ``test/mae_mm``, ..., ``test/coverage``)."""
+    t0 = time.perf_counter()
+    m = load_manifest(root)
+    if m.images != "full":
+        raise DataError(f"{m.root}: the classical row needs the full sequences (images=full)")
+    size = [m.height_px, m.width_px] if resolution is None else resolution
+    spec = check_spec(m, m.views, size, None, None, with_stacks=True)
+    h, w = spec.height_px, spec.width_px
+    ids = split_scenes(m, None, 0)[split]
+    cam = m.rig.camera_at(w, h)
+    projectors = [m.rig.projectors()[v] for v in m.views]
+    n_f, n_s = len(m.fringe.periods_px), m.fringe.steps
+    families = {s["id"]: str(s.get("family", "")) for s in m.scenes}
+    metrics = {k: DepthErrors() for k in SUBSETS}
+    covered = {k: [0.0, 0.0] for k in SUBSETS}
+    rows, preds = [], {"scene_id": [], "pred_mm": [], "depth_mm": []}
+    for sid in ids:
+        raw = load_scene(m, sid, spec)
+        stack = raw["fringe_stack"].reshape(len(m.views), n_f, n_s, h, w)
+        depth = reconstruct_scene(stack, list(m.fringe.periods_px), cam, projectors)
+        gt = torch.from_numpy(raw["depth_mm"][None].astype(np.float32))
+        pred = torch.from_numpy(np.nan_to_num(depth, nan=0.0)[None, None].astype(np.float32))
+        ok = torch.from_numpy(np.isfinite(depth)[None, None])
+        valid = torch.isfinite(gt)
+        masks = {
+            "all": valid,
+            "shadowed": valid & torch.from_numpy(raw["shadowed"][None]),
+            "unlit": valid & torch.from_numpy(raw["unlit"][None]),
+        }
+        row = {"scene": sid, "family": families.get(sid, "")}
+        for subset, mask in masks.items():
+            metrics[subset].update(pred, gt, (mask & ok).float())
+            covered[subset][0] += float((mask & ok).sum())
+            covered[subset][1] += float(mask.sum())
+            errs = per_image_errors(pred, gt, (mask & ok).float())
+            suffix = "" if subset == "all" else f"_{subset}"
+            for name in ("mae_mm", "mse_mm2", "rmse_mm"):
+                row[f"{name}{suffix}"] = float(errs[name][0])
+            row[f"coverage{suffix}"] = float((mask & ok).sum()) / max(float(mask.sum()), 1.0)
+        rows.append(row)
+        preds["scene_id"].append([sid])
+        preds["pred_mm"].append(depth[None].astype(np.float32))
+        preds["depth_mm"].append(raw["depth_mm"].astype(np.float32))
+    if not ids:
+        raise DataError(f"{m.root}: the {split} split is empty")
+    out = {}
+    valid_pixels = covered["all"][1]
+    for subset in SUBSETS:
+        suffix = "" if subset == "all" else f"_{subset}"
+        for name, value in metrics[subset].compute().items():
+            out[f"test/{name}{suffix}"] = float(value)
+        out[f"test/coverage{suffix}"] = covered[subset][0] / max(covered[subset][1], 1.0)
+        if subset != "all":
+            out[f"test/share{suffix}"] = covered[subset][1] / max(valid_pixels, 1.0)
+    out.update(
+        model="classical",
+        views=list(m.views),
+        parameters=0,
+        train_seconds=0.0,
+        test_seconds=round(time.perf_counter() - t0, 1),
+        dataset=str(Path(m.root).resolve()),
+        scenes=len(ids),
+        resolution=[h, w],
+    )
+    out_dir = Path(out_dir)
+    write_test_outputs(out_dir, rows, preds)
+    tmp = out_dir / ".metrics.json.tmp"
+    tmp.write_text(json.dumps(out, indent=1) + "\n")
+    tmp.replace(out_dir / "metrics.json")
+    return out

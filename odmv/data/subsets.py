@@ -1,0 +1,58 @@
+"""Pixel subsets for metrics, from the ground truth of every projector of the dataset.
+
+They never depend on which views a model sees, so every model is scored on the same pixels:
+
+- ``all``: valid pixels (finite depth);
+- ``shadowed``: inside at least one projector's footprint (its frustum) but unlit by at least one
+  projector whose footprint covers it, because something blocks its light or the surface faces
+  away: where occlusion handling matters;
+- ``unlit``: lit by no projector (e.g. image corners outside every footprint, or a pit shadowed
+  from all sides).
+
+``shadowed`` and ``unlit`` may overlap (a pixel in one footprint, shadowed there, outside the
+others). The footprint comes from ``footprint.exr`` where the dataset has it; otherwise it is
+computed from the depth map and the manifest's rig (:func:`footprint_from_depth`), which is exact
+when the rig is, and as good as the calibration for imported data.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from odmv.rig import Rig
+
+
+def footprint_from_depth(rig: Rig, depth_mm: np.ndarray, views) -> np.ndarray:
+    """(V, H, W) bool: whether each pixel's surface point lies inside each projector's frustum.
+
+    The point is the pixel-centre ray (distortion inverted) at the ground-truth depth."""
+    h, w = depth_mm.shape
+    cam = rig.camera_at(w, h)
+    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    origin, d = cam.pixel_rays(np.stack([jj, ii], -1))
+    t = (depth_mm.astype(np.float64) - cam.depth(origin)) / (d @ cam.R[2])
+    pts = origin + t[..., None] * d
+    projectors = rig.projectors()
+    out = []
+    for v in views:
+        p = projectors[v]
+        z = (pts @ p.R.T + p.t)[..., 2]
+        uv = p.project(pts)
+        out.append(
+            (z > 0)
+            & (uv[..., 0] >= 0)
+            & (uv[..., 0] < p.width_px)
+            & (uv[..., 1] >= 0)
+            & (uv[..., 1] < p.height_px)
+        )
+    return np.stack(out)
+
+
+def subset_masks(lit: np.ndarray, footprint: np.ndarray) -> dict[str, np.ndarray]:
+    """``lit`` and ``footprint`` (V, H, W) bool over all projectors -> (1, H, W) bool masks
+    ``shadowed`` and ``unlit`` (``all`` is the valid mask, not needed here)."""
+    lit, footprint = lit.astype(bool), footprint.astype(bool)
+    return {
+        "shadowed": (footprint & ~lit).any(0)[None],
+        "unlit": ~lit.any(0)[None],
+    }

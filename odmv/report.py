@@ -1,0 +1,520 @@
+"""The paper's tables and figures from runs: ``python -m odmv.report runs=[DIR,...] out=DIR``.
+
+``runs`` are run folders (holding ``metrics.json``), sweep folders, or a reproduction's runs
+folder; every ``metrics.json`` below them is read. Runs are placed by what they are (model,
+views, Table I row), seeds of one row are averaged (mean ± std), and the layout is the paper's:
+the view-count table (Sec. III.A), Table I (module ablation, S = 4) and Table II (models). A row
+without a finished run is printed as missing, never filled in. Writes ``tables.md``, one CSV per
+table, ``runs.csv`` (every run), and PNG figures: Fig. 6 (inputs, ground truth, every Table II
+model's prediction and |error| on one mm scale, for the same test scenes), Fig. 7 (scanline
+profiles of all models on one plot) and a bar chart per table.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import os
+import platform
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+import hydra
+import matplotlib
+import numpy as np
+from omegaconf import DictConfig
+
+from odmv.module import PREDICTIONS, SCENES_CSV
+from odmv.simulate import CONF_DIR
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+METRICS = ("mae_mm", "mse_mm2", "rmse_mm")
+
+
+@dataclass(frozen=True)
+class Row:
+    table: str
+    label: str
+    model: str
+    views: int
+    ablation: str | None = None
+    paper: tuple[float, float, float] | None = None  # MAE, MSE, RMSE as the paper prints them
+
+
+_ABLATION = (
+    ("baseline", "Baseline (vanilla 3D U-Net)", (0.0926, 0.1337, 0.3442)),
+    ("rb_ag", "+RB&AG", (0.0463, 0.0440, 0.1840)),
+    ("aspp", "+ASPP", (0.0451, 0.0432, 0.1778)),
+    ("rve", "+RVE", (0.0461, 0.0427, 0.1776)),
+    ("ocd_oaf", "+OCD&OAF", (0.0452, 0.0411, 0.1747)),
+    ("multitask", "+Multi-task (ODMV-Net)", (0.0447, 0.0403, 0.1741)),
+)
+PAPER_ODMV = (0.0447, 0.0403, 0.1741)
+
+#: The three tables in the paper's layout.
+TABLES: dict[str, list[Row]] = {
+    "views": [
+        Row("views", "S=1 (right)", "odmvnet", 1, "multitask"),
+        Row("views", "S=2 (right, up)", "odmvnet", 2, "multitask"),
+        Row("views", "S=3 (right, left, up)", "odmvnet", 3, "multitask"),
+        Row("views", "S=4 (all)", "odmvnet", 4, "multitask", PAPER_ODMV),
+    ],
+    "table1": [Row("table1", label, "odmvnet", 4, key, p) for key, label, p in _ABLATION],
+    "table2": [
+        Row("table2", "hNet (S=1)", "hnet", 1, None, (0.1449, 0.2794, 0.4792)),
+        Row("table2", "UNet (S=1)", "unet", 1, None, (0.1083, 0.2132, 0.3979)),
+        Row("table2", "UHRNet (S=1)", "uhrnet", 1, None, (0.1049, 0.1523, 0.3316)),
+        Row("table2", "MTLNet (S=1)", "mtlnet", 1, None, (0.0928, 0.1434, 0.3296)),
+        Row("table2", "UNet, 4 views as channels (S=4)", "unet", 4),
+        Row("table2", "Classical phase shifting (4 projectors)", "classical", 4),
+        Row("table2", "ODMV-Net (S=4)", "odmvnet", 4, "multitask", PAPER_ODMV),
+    ],
+}
+TITLES = {
+    "views": "View-count experiment (ODMV-Net, Sec. III.A)",
+    "table1": "Table I: module ablation (ODMV-Net, S=4)",
+    "table2": "Table II: model comparison",
+}
+#: ODMV-Net's MAE improvement over each single-view baseline, as the paper quotes it (%).
+PAPER_IMPROVEMENT = {"unet": 58.73, "hnet": 69.15, "uhrnet": 57.39, "mtlnet": 51.83}
+
+
+class ReportError(ValueError):
+    """A one-line error naming the folder at fault."""
+
+
+@dataclass
+class Run:
+    folder: Path
+    metrics: dict
+
+    @property
+    def model(self) -> str:
+        return self.metrics.get("model", "")
+
+    @property
+    def n_views(self) -> int:
+        return len(self.metrics.get("views") or [])
+
+    def matches(self, row: Row) -> bool:
+        if (self.model, self.n_views) != (row.model, row.views):
+            return False
+        return row.ablation is None or self.metrics.get("ablation") == row.ablation
+
+
+@dataclass
+class Cell:
+    """One row of a table: its runs and their statistics."""
+
+    row: Row
+    runs: list[Run] = field(default_factory=list)
+
+    def values(self, key: str) -> np.ndarray:
+        return np.array([float(r.metrics.get(key, np.nan)) for r in self.runs], float)
+
+    def stat(self, key: str) -> tuple[float, float]:
+        v = self.values(key)
+        v = v[np.isfinite(v)]
+        if not len(v):
+            return np.nan, np.nan
+        return float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else np.nan
+
+
+def find_runs(paths: list[Path]) -> tuple[list[Run], list[Path]]:
+    """Finished runs (folders with metrics.json) and unfinished ones (a training log, no
+    metrics yet) below ``paths``."""
+    runs, pending = [], []
+    for p in paths:
+        if not p.is_dir():
+            raise ReportError(f"{p}: no such folder")
+        for folder in sorted({f.parent for f in p.rglob("metrics.json")}):
+            try:
+                metrics = json.loads((folder / "metrics.json").read_text())
+            except (OSError, json.JSONDecodeError) as e:
+                raise ReportError(f"{folder / 'metrics.json'}: unreadable ({e})") from None
+            if "test/mae_mm" not in metrics or "model" not in metrics:
+                raise ReportError(f"{folder / 'metrics.json'}: not a test result of odmv.train")
+            runs.append(Run(folder, metrics))
+        for log in p.rglob("train.log"):
+            if not (log.parent / "metrics.json").is_file():
+                pending.append(log.parent)
+    return runs, sorted(set(pending))
+
+
+def build_tables(runs: list[Run]) -> dict[str, list[Cell]]:
+    return {
+        name: [Cell(row, [r for r in runs if r.matches(row)]) for row in rows]
+        for name, rows in TABLES.items()
+    }
+
+
+# ----------------------------------------------------------------------------- formatting
+def _fmt(mean: float, std: float, digits: int = 4) -> str:
+    if not np.isfinite(mean):
+        return "missing"
+    return f"{mean:.{digits}f}" + (f" ± {std:.{digits}f}" if np.isfinite(std) else "")
+
+
+def _paper(row: Row, i: int) -> str:
+    return f"{row.paper[i]:.4f}" if row.paper else "–"
+
+
+def table_markdown(name: str, cells: list[Cell]) -> list[str]:
+    classical = any(c.row.model == "classical" for c in cells)
+    head = [
+        "Model",
+        "seeds",
+        "MAE (mm)",
+        "MSE (mm²)",
+        "RMSE (mm)",
+        "MAE shadowed (mm)",
+        "MSE shadowed (mm²)",
+        "RMSE shadowed (mm)",
+    ]
+    head += ["coverage (%)"] if classical else []
+    head += ["parameters", "train time (min)", "paper MAE", "paper MSE", "paper RMSE"]
+    lines = [f"### {TITLES[name]}", "", "| " + " | ".join(head) + " |"]
+    lines.append("|" + "|".join(["---"] + ["---:"] * (len(head) - 1)) + "|")
+    for c in cells:
+        cols = [c.row.label, str(len(c.runs)) if c.runs else "–"]
+        for sub in ("", "_shadowed"):
+            cols += [_fmt(*c.stat(f"test/{m}{sub}")) for m in METRICS]
+        if classical:
+            cov = c.stat("test/coverage")[0]
+            cols.append(f"{100 * cov:.1f}" if np.isfinite(cov) else "–")
+        params = c.stat("parameters")[0]
+        minutes = c.stat("train_seconds")[0] / 60
+        cols.append(f"{int(params):,}" if np.isfinite(params) and params > 0 else "–")
+        cols.append(f"{minutes:.1f}" if np.isfinite(minutes) and minutes > 0 else "–")
+        cols += [_paper(c.row, i) for i in range(3)]
+        lines.append("| " + " | ".join(cols) + " |")
+    return lines + [""]
+
+
+def improvements_markdown(cells: list[Cell]) -> list[str]:
+    """ODMV-Net's relative MAE reduction against each baseline, ours beside the paper's."""
+    ours = next(c for c in cells if c.row.model == "odmvnet")
+    lines = [
+        "### ODMV-Net's MAE reduction against each model (%; positive: ODMV-Net is better)",
+        "",
+        "| against | paper | ours, all pixels | ours, shadowed pixels |",
+        "|---|---:|---:|---:|",
+    ]
+    for c in cells:
+        if c is ours:
+            continue
+        vals = []
+        for sub in ("", "_shadowed"):
+            base, mine = c.stat(f"test/mae_mm{sub}")[0], ours.stat(f"test/mae_mm{sub}")[0]
+            ok = np.isfinite(base) and np.isfinite(mine) and base > 0
+            vals.append(f"{100 * (base - mine) / base:.1f}" if ok else "missing")
+        paper = PAPER_IMPROVEMENT.get(c.row.model) if c.row.views == 1 else None
+        lines.append(f"| {c.row.label} | {paper if paper else '–'} | {vals[0]} | {vals[1]} |")
+    return lines + [""]
+
+
+def table_csv(path: Path, cells: list[Cell]) -> None:
+    keys = [f"test/{m}{s}" for s in ("", "_shadowed", "_unlit") for m in METRICS]
+    keys += ["test/coverage", "test/share_shadowed", "test/share_unlit"]
+    rows = []
+    for c in cells:
+        r = {"row": c.row.label, "model": c.row.model, "views": c.row.views}
+        r["ablation"] = c.row.ablation or ""
+        r["seeds"] = len(c.runs)
+        for k in keys + ["parameters", "train_seconds"]:
+            mean, std = c.stat(k)
+            name = k.removeprefix("test/")
+            r[name] = "" if not np.isfinite(mean) else f"{mean:.6g}"
+            r[f"{name}_std"] = "" if not np.isfinite(std) else f"{std:.6g}"
+        for i, m in enumerate(METRICS):
+            r[f"paper_{m}"] = c.row.paper[i] if c.row.paper else ""
+        rows.append(r)
+    _write_csv(path, rows)
+
+
+def _write_csv(path: Path, rows: list[dict]) -> None:
+    fields = list(dict.fromkeys(k for r in rows for k in r))
+    tmp = path.with_name(f".{path.name}.tmp")
+    with tmp.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=fields, restval="")
+        w.writeheader()
+        w.writerows(rows)
+    tmp.replace(path)
+
+
+# ----------------------------------------------------------------------------- header
+def _commit() -> str:
+    root = Path(__file__).resolve().parent.parent
+    try:
+        sha = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown (not a git checkout)"
+    return sha + (" (with uncommitted changes)" if dirty else "")
+
+
+def _dataset_line(runs: list[Run]) -> str:
+    roots = sorted({r.metrics.get("dataset", "") for r in runs} - {""})
+    parts = []
+    for root in roots:
+        manifest = Path(root) / "manifest.json"
+        fp = (
+            hashlib.sha1(manifest.read_bytes()).hexdigest()[:12]
+            if manifest.is_file()
+            else "manifest not found"
+        )
+        parts.append(f"`{Path(root).name}` (manifest sha1 {fp})")
+    return ", ".join(parts) or "unknown"
+
+
+def _machine() -> str:
+    import torch
+
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
+    return (
+        f"{platform.machine()}, {os.cpu_count()} CPU cores, {gpu}; Python "
+        f"{platform.python_version()}, torch {torch.__version__}"
+    )
+
+
+# ----------------------------------------------------------------------------- figures
+def bar_chart(path: Path, name: str, cells: list[Cell]) -> None:
+    labels = [c.row.label for c in cells]
+    x = np.arange(len(cells))
+    fig, ax = plt.subplots(figsize=(max(6, 1.3 * len(cells)), 4))
+    for k, (sub, colour, text) in enumerate(
+        (("", "tab:blue", "all pixels"), ("_shadowed", "tab:orange", "shadowed pixels"))
+    ):
+        stats = [c.stat(f"test/mae_mm{sub}") for c in cells]
+        means = [s[0] if np.isfinite(s[0]) else 0 for s in stats]
+        errs = [s[1] if np.isfinite(s[1]) else 0 for s in stats]
+        ax.bar(x + (k - 0.5) * 0.38, means, 0.38, yerr=errs, color=colour, label=text, capsize=3)
+    for i, c in enumerate(cells):
+        if not c.runs:
+            ax.text(i, 0, "missing", ha="center", va="bottom", rotation=90, fontsize=8)
+    ax.set_xticks(x, labels, rotation=25, ha="right", fontsize=8)
+    ax.set_ylabel("test MAE (mm), mean ± std over seeds")
+    ax.set_title(TITLES[name], fontsize=10)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _predictions(run: Run) -> dict[str, np.ndarray] | None:
+    path = run.folder / PREDICTIONS
+    if not path.is_file():
+        return None
+    with np.load(path) as z:
+        return {
+            sid: (p, g)
+            for sid, p, g in zip(z["scene_id"], z["pred_mm"], z["depth_mm"], strict=True)
+        }
+
+
+def _fringes(dataset: str, sid: str, shape: tuple[int, int]) -> tuple[list[str], np.ndarray] | None:
+    """Every view's input fringe of one scene, from the dataset (None if it is not there)."""
+    from odmv.data.dataset import DataError, check_spec, load_scene
+    from odmv.io.manifest import ManifestError, load_manifest
+
+    try:
+        m = load_manifest(dataset)
+        spec = check_spec(m, m.views, list(shape), None, None)
+        return list(m.views), load_scene(m, sid, spec)["fringes"]
+    except (DataError, ManifestError, OSError, ValueError):
+        return None
+
+
+def pick_scenes(run: Run, count: int) -> list[str]:
+    """Test scenes for the figures: one per family (the one with the most shadowed pixels)."""
+    path = run.folder / SCENES_CSV
+    if not path.is_file():
+        return []
+    rows = list(csv.DictReader(path.open()))
+    best: dict[str, tuple[float, str]] = {}
+    for r in rows:
+        share = float(r.get("pixels_shadowed") or 0)
+        if share >= best.get(r["family"], (-1.0, ""))[0]:
+            best[r["family"]] = (share, r["scene"])
+    return [sid for _, sid in sorted(best.values(), reverse=True)][:count]
+
+
+def comparison_figures(
+    out: Path, cells: list[Cell], count: int, error_scale_mm: float
+) -> list[str]:
+    """Fig. 6 and Fig. 7 for the Table II models (seed-0 run of each row, or the first)."""
+    shown = [
+        (c.row.label, min(c.runs, key=lambda r: r.metrics.get("seed", 0))) for c in cells if c.runs
+    ]
+    preds = [(label, _predictions(run)) for label, run in shown]
+    preds = [(label, p) for label, p in preds if p]
+    if not preds:
+        return []
+    ref_run = next((r for c in cells if c.row.model == "odmvnet" for r in c.runs), shown[0][1])
+    written = []
+    for sid in pick_scenes(ref_run, count):
+        if not all(sid in p for _, p in preds):
+            continue
+        gt = preds[0][1][sid][1]
+        lo, hi = float(np.nanmin(gt)), float(np.nanmax(gt))
+        n = len(preds)
+        inputs = _fringes(ref_run.metrics.get("dataset", ""), sid, gt.shape)
+        cols = max(n, 5)
+        fig, axes = plt.subplots(3, cols, figsize=(2.6 * cols, 8), squeeze=False)
+        for ax in axes.flat:
+            ax.set_xticks([])
+            ax.set_yticks([])
+        if inputs:
+            for k, (v, img) in enumerate(zip(*inputs, strict=True)):
+                axes[0, k].imshow(img, cmap="gray")
+                axes[0, k].set_title(f"input {k + 1}: {v}", fontsize=8)
+        im = axes[0, 4].imshow(gt, cmap="viridis_r", vmin=lo, vmax=hi)
+        axes[0, 4].set_title("ground truth (mm)", fontsize=8)
+        fig.colorbar(im, ax=axes[0, 4], fraction=0.046)
+        for k, (label, p) in enumerate(preds):
+            pred = p[sid][0]
+            axes[1, k].imshow(pred, cmap="viridis_r", vmin=lo, vmax=hi)
+            axes[1, k].set_title(label, fontsize=7)
+            err = np.abs(pred - gt)
+            im = axes[2, k].imshow(err, cmap="inferno", vmin=0, vmax=error_scale_mm)
+            axes[2, k].set_title(f"|error|, MAE {np.nanmean(err):.3f} mm", fontsize=7)
+        fig.colorbar(im, ax=axes[2, n - 1], fraction=0.046, label="|error| (mm)")
+        for ax in list(axes[0, len(inputs[0]) if inputs else 0 : 4]) + list(axes[1:, n:].flat):
+            ax.axis("off")
+        fig.suptitle(f"Fig. 6 layout: test scene {sid} (|error| on a 0-{error_scale_mm} mm scale)")
+        fig.tight_layout()
+        name = f"fig6_scene{sid}.png"
+        fig.savefig(out / name, dpi=90)
+        plt.close(fig)
+        written.append(name)
+        # Fig. 7: the row through the most shadowed region is where models differ
+        row = gt.shape[0] // 2
+        fig, ax = plt.subplots(figsize=(8, 4))
+        x = np.arange(gt.shape[1])
+        ax.plot(x, gt[row], "k-", lw=2, label="ground truth")
+        for label, p in preds:
+            ax.plot(x, p[sid][0][row], lw=1, label=label)
+        ax.invert_yaxis()
+        ax.set_xlabel("column (px)")
+        ax.set_ylabel("depth (mm)")
+        ax.set_title(f"Fig. 7 layout: profile of scene {sid}, row {row}")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        name = f"fig7_scene{sid}.png"
+        fig.savefig(out / name, dpi=90)
+        plt.close(fig)
+        written.append(name)
+    return written
+
+
+# ----------------------------------------------------------------------------- the report
+def write_report(
+    folders: list[Path],
+    out: Path,
+    protocol: str | None = None,
+    figures: int = 3,
+    error_scale_mm: float = 1.0,
+) -> Path:
+    """Read the runs below ``folders`` and write the report into ``out``; returns tables.md."""
+    out = Path(out)
+    runs, pending = find_runs([Path(f) for f in folders if Path(f).exists()])
+    if not runs:
+        raise ReportError(f"{', '.join(map(str, folders))}: no finished run (metrics.json) found")
+    out.mkdir(parents=True, exist_ok=True)
+    tables = build_tables(runs)
+    seconds = sum(float(r.metrics.get("train_seconds", 0)) for r in runs)
+    lines = [
+        "# odmv reproduction report",
+        "",
+        f"- protocol: {protocol or 'not given'}",
+        f"- dataset: {_dataset_line(runs)}",
+        f"- commit: {_commit()}",
+        f"- machine: {_machine()}",
+        f"- date: {datetime.now(timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}",
+        f"- runs: {len(runs)} finished ({seconds / 60:.1f} min of training), {len(pending)} "
+        "unfinished",
+        "",
+        "Metrics are over the test split in mm on depth (MSE in mm², which the paper prints as "
+        "mm); mean ± std over seeds (std where a row has two or more). `shadowed`: pixels inside "
+        "some projector's footprint but unlit by a projector that covers them, from the "
+        "dataset's ground truth of all four projectors, so every model is scored on the same "
+        "pixels. Paper columns: the paper's published numbers, for its 480 px protocol; the "
+        "paper gives no numbers for S = 1..3. `missing`: no finished run for that row.",
+        "",
+    ]
+    for name, cells in tables.items():
+        lines += table_markdown(name, cells)
+        table_csv(out / f"{name}.csv", cells)
+        bar_chart(out / f"bars_{name}.png", name, cells)
+        lines.append(f"![{TITLES[name]}](bars_{name}.png)")
+        lines.append("")
+    lines += improvements_markdown(tables["table2"])
+    shares = [r.metrics.get("test/share_shadowed") for r in runs if r.model != "classical"]
+    shares = [s for s in shares if s is not None]
+    if shares:
+        unlit = np.mean([r.metrics.get("test/share_unlit", np.nan) for r in runs])
+        lines += [
+            f"Pixel subsets of the test split: shadowed {100 * float(np.mean(shares)):.1f} %, "
+            f"unlit {100 * float(unlit):.1f} % of the valid pixels.",
+            "",
+        ]
+    names = comparison_figures(out, tables["table2"], figures, error_scale_mm)
+    if names:
+        lines += ["### Figures (Table II models, seed 0)", ""]
+        lines += [f"![{n}]({n})" for n in names]
+        lines.append("")
+    if pending:
+        lines += ["### Unfinished runs (not counted)", ""]
+        lines += [f"- `{p}`" for p in pending]
+        lines.append("")
+    lines += ["### Every run", "", "See `runs.csv` (one line per run and seed)."]
+    _write_csv(
+        out / "runs.csv",
+        [
+            {
+                "folder": str(r.folder),
+                **{k: v for k, v in r.metrics.items() if not isinstance(v, (list, dict))},
+                "views": "+".join(r.metrics.get("views") or []),
+            }
+            for r in runs
+        ],
+    )
+    tmp = out / ".tables.md.tmp"
+    tmp.write_text("\n".join(lines) + "\n")
+    tmp.replace(out / "tables.md")
+    return out / "tables.md"
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="report")
+def main(cfg: DictConfig) -> None:
+    runs = [cfg.runs] if isinstance(cfg.runs, str) else list(cfg.runs)
+    try:
+        path = write_report(
+            [Path(p) for p in runs], Path(cfg.out), cfg.protocol, cfg.figures, cfg.error_scale_mm
+        )
+    except ReportError as e:
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+    print(f"report: {path}")
+
+
+if __name__ == "__main__":
+    main()

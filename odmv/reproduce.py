@@ -1,0 +1,198 @@
+"""The paper's three experiments in one command: ``python -m odmv.reproduce protocol=mini``.
+
+Renders the protocol's dataset, trains every row of the three sweeps (conf/sweep/: views,
+ablation, models) for each seed, runs the classical reference on the same test scenes, and
+writes the report (odmv.report). Every row is one ``python -m odmv.train`` run in its own folder
+under ``runs_dir``; a row whose ``metrics.json`` is on disk is not trained again, so an
+interrupted reproduction continues where it stopped. Rows that are the same configuration in two
+tables (ODMV-Net at S = 4 is the last row of all three) are trained once. Seed 0 of every row
+runs before seed 1, so a partial reproduction already fills every table.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import hydra
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from omegaconf import DictConfig, OmegaConf
+
+import odmv.config  # noqa: F401  (registers the config resolvers)
+from odmv.classical import classical_row
+from odmv.report import write_report
+from odmv.simulate import CONF_DIR
+
+CLASSICAL_DIR = "classical"
+RECORD = "reproduce.json"  # per row: its overrides and configuration hash
+
+
+class ReproduceError(ValueError):
+    """A one-line error about the reproduction's settings."""
+
+
+@dataclass
+class Job:
+    overrides: list[str]  # train overrides beyond experiment=<protocol>
+    seed: int
+    folder: Path
+    key: str  # hash of the resolved training config
+
+    def stale(self) -> bool:
+        """Whether the row on disk was trained with another configuration than today's."""
+        record = self.folder / RECORD
+        return record.is_file() and json.loads(record.read_text()).get("key") != self.key
+
+
+def _compose(overrides: list[str], hydra_cfg: bool = False) -> DictConfig:
+    """The train config for ``overrides`` (inside this app's Hydra, or a fresh one)."""
+    if GlobalHydra.instance().is_initialized():
+        return compose("train", overrides=overrides, return_hydra_config=hydra_cfg)
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose("train", overrides=overrides, return_hydra_config=hydra_cfg)
+
+
+def sweep_overrides(protocol: str, table: str, extra: list[str]) -> list[list[str]]:
+    """The jobs of one table's sweep (conf/sweep/<table>.yaml) as override lists, expanded like
+    Hydra's basic sweeper (the cartesian product of the sweep's parameters)."""
+    try:
+        cfg = _compose([f"experiment={protocol}", f"sweep={table}", *extra], hydra_cfg=True)
+    except Exception as e:  # Hydra's composition errors name the missing option
+        raise ReproduceError(f"protocol={protocol} table={table}: {e}") from None
+    params = OmegaConf.to_container(cfg.hydra.sweeper.params, resolve=True)
+    parsed = OverridesParser.create().parse_overrides([f"{k}={v}" for k, v in params.items()])
+    axes = []
+    for o in parsed:
+        key = o.get_key_element()
+        values = o.sweep_string_iterator() if o.is_sweep_override() else [o.value()]
+        axes.append([f"{key}={v}" for v in values])
+    return [list(combo) for combo in itertools.product(*axes)]
+
+
+def _run_key(cfg: DictConfig) -> str:
+    """Hash of everything that shapes a run (not where it is written or what it is called)."""
+    cfg = cfg.copy()
+    cfg.paths.output_dir = "RUN"  # a run's own folder is not part of what it is
+    d = OmegaConf.to_container(cfg, resolve=True)
+    for k in ("paths", "task_name", "test", "ckpt_path", "log_images", "seeds"):
+        d.pop(k, None)
+    return hashlib.sha1(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:8]
+
+
+def plan(
+    protocol: str, tables: list[str], seeds: list[int] | None, extra: list[str], runs_dir: Path
+) -> list[Job]:
+    """Every distinct run of the reproduction, seed-major, each with its folder (named by the
+    row; a configuration that two tables share is one run)."""
+    base = _compose([f"experiment={protocol}", *extra])
+    seeds = list(base.seeds) if seeds is None else list(seeds)
+    jobs: dict[str, Job] = {}
+    for seed in seeds:
+        for table in tables:
+            for ov in sweep_overrides(protocol, table, extra):
+                ov = [o for o in ov if not o.startswith("seed=")] + [f"seed={seed}"]
+                cfg = _compose([f"experiment={protocol}", *extra, *ov])
+                views = len(cfg.data.views)
+                name = f"{cfg.model.name}-s{views}"
+                if cfg.model.name == "odmvnet":
+                    name += f"-{cfg.ablation}"
+                key = _run_key(cfg)
+                jobs.setdefault(key, Job(ov, seed, runs_dir / f"{name}-seed{seed}", key))
+    return list(jobs.values())
+
+
+def _train(job: Job, protocol: str, extra: list[str]) -> dict:
+    """Train one row in a subprocess (a clean process per run); its log goes to train.out."""
+    if job.folder.exists():  # an interrupted row starts again from scratch
+        shutil.rmtree(job.folder)
+    tmp = job.folder.with_name(f".{job.folder.name}.log")
+    tmp.parent.mkdir(parents=True, exist_ok=True)
+    cmd = [
+        sys.executable,
+        "-m",
+        "odmv.train",
+        f"experiment={protocol}",
+        *extra,
+        *job.overrides,
+        f"hydra.run.dir={job.folder}",
+        "trainer.enable_progress_bar=false",
+        "data.progress=false",
+    ]
+    with tmp.open("w") as log:
+        log.write(" ".join(cmd) + "\n")
+        log.flush()
+        proc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, check=False)
+    if job.folder.is_dir():
+        tmp.replace(job.folder / "train.out")
+    if proc.returncode != 0 or not (job.folder / "metrics.json").is_file():
+        where = job.folder / "train.out" if job.folder.is_dir() else tmp
+        raise ReproduceError(f"{where}: training failed (exit {proc.returncode})")
+    record = {"overrides": [f"experiment={protocol}", *extra, *job.overrides], "key": job.key}
+    (job.folder / RECORD).write_text(json.dumps(record, indent=1) + "\n")
+    return json.loads((job.folder / "metrics.json").read_text())
+
+
+def reproduce(cfg: DictConfig) -> Path:
+    """Run (or continue) the reproduction; returns the report folder."""
+    protocol, extra = cfg.protocol, list(cfg.overrides or [])
+    runs_dir, out = Path(cfg.runs_dir), Path(cfg.out)
+    t0 = time.perf_counter()
+    jobs = plan(protocol, list(cfg.tables), cfg.seeds, extra, runs_dir)
+    data_cfg = _compose([f"experiment={protocol}", *extra]).data
+    dm = hydra.utils.instantiate(data_cfg, _convert_="all")
+    dm.prepare_data()  # renders the protocol's dataset once; every row reads it
+    todo = [j for j in jobs if not (j.folder / "metrics.json").is_file()]
+    for job in jobs:
+        if job.stale() and job not in todo:
+            print(
+                f"note: {job.folder.name} was trained with another configuration than today's; "
+                "it is kept (delete its folder to train it again)",
+                flush=True,
+            )
+    print(
+        f"protocol {protocol}: {len(jobs)} runs ({len(jobs) - len(todo)} done), "
+        f"dataset {dm.root}, runs in {runs_dir}",
+        flush=True,
+    )
+    for k, job in enumerate(todo, 1):
+        print(f"[{k}/{len(todo)}] {job.folder.name}: {' '.join(job.overrides)}", flush=True)
+        m = _train(job, protocol, extra)
+        print(
+            f"    {m['train_seconds'] / 60:.1f} min, test MAE {m['test/mae_mm']:.4f} mm "
+            f"(shadowed {m['test/mae_mm_shadowed']:.4f} mm)",
+            flush=True,
+        )
+    classical = runs_dir / CLASSICAL_DIR
+    if cfg.classical and not (classical / "metrics.json").is_file():
+        print("classical reference (phase shifting, 4 projectors) on the test scenes", flush=True)
+        classical_row(dm.root, classical, resolution=dm.resolution)
+    folders = [j.folder for j in jobs] + ([classical] if cfg.classical else [])
+    write_report(folders, out, protocol=protocol)
+    minutes = (time.perf_counter() - t0) / 60
+    print(f"report: {out / 'tables.md'} (this call: {minutes:.1f} min)")
+    return out
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="reproduce")
+def main(cfg: DictConfig) -> None:
+    try:
+        reproduce(cfg)
+    except ReproduceError as e:
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,172 @@
+"""Metrics that compare and the reproduction pipeline: float32 mm under bf16 autocast, pixel
+subsets from every projector's ground truth, the classical row, the report over real runs, and
+a resumed reproduction that trains nothing."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from odmv.classical import classical_row
+from odmv.data.normalize import Normalization
+from odmv.data.subsets import footprint_from_depth, subset_masks
+from odmv.io.manifest import FringeSpec
+from odmv.module import FPPModule
+from odmv.reproduce import plan, reproduce, sweep_overrides
+from odmv.rig import VIEW_NAMES, Rig
+from odmv.sim.render import RenderConfig, render_scene
+from odmv.sim.scenes import build_scene
+from odmv.simulate import CONF_DIR
+
+RIG = Rig()
+
+
+def test_depth_in_mm_under_bf16_autocast_matches_float32():
+    """A net whose depth is a known constant: under bf16 autocast the mm value must not round
+    (bf16 has 1 mm steps at 140 mm and 0.008 steps in normalized units near 1)."""
+    module = FPPModule({"_target_": "odmv.models.UNet", "base_width": 4, "dropout": 0.0})
+    module.norm = Normalization(1.0, 140.0, 10.0)
+    head = module.net.head
+    torch.nn.init.zeros_(head.weight)
+    torch.nn.init.constant_(head.bias, 0.987654)  # 149.87654 mm
+    x = torch.randn(1, 1, 32, 32)
+    with torch.no_grad():
+        ref = module.depth_mm(module(x))
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            out = module(x)
+            low = module.depth_mm(out)
+    assert out["depth"].dtype == torch.float32 and low.dtype == torch.float32
+    assert float((low - 149.87654).abs().max()) < 1e-4
+    assert float((low - ref).abs().max()) < 1e-5
+
+
+def test_every_baseline_head_stays_float32_under_autocast():
+    for cls in ("UNet", "HNet", "UHRNet", "MTLNet"):
+        net = getattr(__import__("odmv.models", fromlist=[cls]), cls)(1, 4, 0.0).eval()
+        with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+            assert net(torch.randn(1, 1, 32, 32))["depth"].dtype == torch.float32, cls
+
+
+def test_subsets_of_a_box_scene():
+    """A 4 mm box on the base plane: its shadows are `shadowed`, the image corners outside every
+    projector's footprint are `unlit`, the box top (lit by all four) is neither."""
+    size = 64
+    box = {"shape": "box", "size": [6, 6, 4], "position": [0, 0, 2], "albedo": 0.8}
+    clean = RenderConfig(full_well_e=0.0, read_noise=0.0)
+    r = render_scene(
+        build_scene({"parts": [box]}),
+        RIG,
+        size,
+        size,
+        FringeSpec(),
+        VIEW_NAMES,
+        clean,
+        np.random.default_rng(0),
+    )
+    lit = np.stack([r.lit[v] for v in VIEW_NAMES])
+    foot = np.stack([r.footprint[v] for v in VIEW_NAMES])
+    assert not (lit & ~foot).any()  # lit implies inside the footprint
+    masks = subset_masks(lit, foot)
+    shadowed, unlit = masks["shadowed"][0], masks["unlit"][0]
+    c = size // 2
+    assert not shadowed[c, c] and not unlit[c, c]  # box top
+    for corner in ((0, 0), (0, -1), (-1, 0), (-1, -1)):
+        assert unlit[corner] and not shadowed[corner]
+    # the ground beside the box towards each side: shadowed from the projector opposite
+    cam = RIG.camera_at(size)
+    for x, y in ((4.5, 0), (-4.5, 0), (0, 4.5), (0, -4.5)):
+        u, v = cam.project(np.array([x, y, 0.0])).astype(int)
+        assert shadowed[v, u], (x, y)
+    # the footprint computed from depth and the rig (the fallback) agrees with the render's
+    fallback = footprint_from_depth(RIG, r.depth_mm, VIEW_NAMES)
+    assert (fallback == foot).mean() > 0.995
+
+
+def test_classical_row_is_accurate_where_it_reconstructs(tiny_dataset, tmp_path):
+    m = classical_row(tiny_dataset, tmp_path)
+    assert m["test/mae_mm"] < 0.1 and 0.5 < m["test/coverage"] <= 1.0
+    assert m["test/coverage_unlit"] < m["test/coverage"]
+    rows = list(csv.DictReader((tmp_path / "test_scenes.csv").open()))
+    assert rows and {"scene", "family", "mae_mm", "coverage"} <= set(rows[0])
+    with np.load(tmp_path / "test_predictions.npz") as z:
+        assert z["pred_mm"].shape == z["depth_mm"].shape
+        assert np.isnan(z["pred_mm"]).any() and np.isfinite(z["pred_mm"]).any()
+
+
+def _compose(overrides, hydra_cfg=False):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose("train", overrides=overrides, return_hydra_config=hydra_cfg)
+
+
+def test_sweeps_expand_to_the_tables_rows():
+    jobs = sweep_overrides("mini", "models", [])
+    assert len(jobs) == 12  # six rows x the mini protocol's two seeds
+    assert ["contender=unet_s4", "seed=0"] in jobs
+    cfg = _compose(["experiment=mini", "contender=unet_s4"])
+    assert cfg.model.name == "unet" and cfg.model.net.in_channels == 4
+    assert cfg.model.net.base_width == 32  # baselines keep their published width
+    cfg = _compose(["experiment=mini"])
+    assert cfg.model.net.base_width == 8 and cfg.data.resolution == 64
+    paper = _compose(["experiment=paper"])
+    assert (paper.data.resolution, paper.data.batch_size, paper.trainer.max_epochs) == (480, 2, 200)
+    assert paper.data.simulate.scenes == 252 and paper.model.net.base_width == 46
+
+
+def test_plan_trains_a_configuration_shared_by_tables_once(tmp_path):
+    jobs = plan("mini", ["views", "ablation", "models"], [0], [], tmp_path)
+    names = [j.folder.name for j in jobs]
+    assert len(names) == len(set(names)) == 14  # 4 + 6 + 6 rows, ODMV-Net S=4 shared by all
+    assert names.count("odmvnet-s4-multitask-seed0") == 1
+
+
+@pytest.mark.slow
+def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, tmp_path):
+    overrides = [
+        "data=exr",
+        f"root={tiny_dataset}",
+        "data.resolution=32",
+        "data.batch_size=2",
+        f"data.cache_dir={tmp_path}/cache",
+        "widths.odmvnet=4",
+        "model.net.blocks=1",
+        "trainer.max_epochs=1",
+        "trainer.limit_train_batches=2",
+        "trainer.enable_model_summary=false",
+        "log_images=0",
+    ]
+    runs, out = tmp_path / "runs", tmp_path / "report"
+    cfg = _reproduce_cfg(overrides, runs, out)
+    reproduce(cfg)
+    metrics = sorted(runs.glob("*/metrics.json"))
+    assert len(metrics) == 4 + 1  # S = 1..4, and the classical row
+    table = (out / "tables.md").read_text()
+    for path in metrics:
+        m = json.loads(path.read_text())
+        assert f"{m['test/mae_mm']:.4f}" in table
+    assert "missing" in table  # Table I rows 1-5 were not run
+    views = list(csv.DictReader((out / "views.csv").open()))
+    assert [r["seeds"] for r in views] == ["1", "1", "1", "1"]
+    assert all(float(r["mae_mm"]) > 0 for r in views)
+    assert list(out.glob("fig6_*.png")) and list(out.glob("bars_*.png"))
+    stamps = {p: p.stat().st_mtime_ns for p in metrics}
+    reproduce(cfg)  # everything is on disk: nothing is trained again
+    assert {p: p.stat().st_mtime_ns for p in metrics} == stamps
+
+
+def _reproduce_cfg(overrides, runs, out):
+    from omegaconf import OmegaConf
+
+    return OmegaConf.create(
+        {
+            "protocol": "mini",
+            "tables": ["views"],
+            "seeds": [0],
+            "overrides": overrides,
+            "classical": True,
+            "runs_dir": str(runs),
+            "out": str(out),
+        }
+    )
