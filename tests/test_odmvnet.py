@@ -93,3 +93,23 @@ def test_activation_checkpointing_gives_the_same_gradients():
         net(x)["depth"].sum().backward()
         grads.append(torch.cat([p.grad.flatten() for p in net.parameters() if p.grad is not None]))
     torch.testing.assert_close(grads[0], grads[1])
+
+
+def test_group_norm_switch_replaces_every_batch_norm():
+    import torch.nn as nn
+
+    from odmv.models import UHRNet
+
+    nets = (ODMVNet(base_width=4, blocks=1, norm="group"), UHRNet(1, 8, 0.0, norm="group"))
+    for net in nets:
+        kinds = {type(m) for m in net.modules()}
+        assert nn.GroupNorm in kinds
+        assert not any(issubclass(k, nn.modules.batchnorm._BatchNorm) for k in kinds)
+        net.train()  # BatchNorm would mix the batch here; GroupNorm's statistics are per sample
+        x = torch.randn(2, 4 if isinstance(net, ODMVNet) else 1, 32, 32)
+        with torch.no_grad():
+            both = net(x)["depth"]
+            one = net(x[:1])["depth"]
+        torch.testing.assert_close(both[:1], one, atol=1e-5, rtol=1e-4)
+    with pytest.raises(ValueError, match="norm 'layer' unknown"):
+        ODMVNet(base_width=4, blocks=1, norm="layer")

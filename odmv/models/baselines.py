@@ -28,7 +28,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from odmv.models.blocks import Float32Conv2d, Float32ConvTranspose2d
+from odmv.models.blocks import Float32Conv2d, Float32ConvTranspose2d, set_norm
 
 
 def _check(x: torch.Tensor, levels: int, name: str) -> None:
@@ -207,7 +207,9 @@ class _HighResFusion(nn.Module):
 
 
 class UHRNet(nn.Module):
-    def __init__(self, in_channels: int = 1, base_width: int = 64, dropout: float = 0.3):
+    def __init__(
+        self, in_channels: int = 1, base_width: int = 64, dropout: float = 0.3, norm: str = "batch"
+    ):
         super().__init__()
         w = _widths(base_width)
         self.levels = 4
@@ -227,6 +229,7 @@ class UHRNet(nn.Module):
             ]
         )
         self.head = Float32Conv2d(w[0], 1, 1)
+        set_norm(self, norm)
 
     def forward(self, x):
         _check(x, self.levels, "UHRNet")

@@ -26,6 +26,30 @@ def conv_bn_act(
     return nn.Sequential(*layers)
 
 
+NORMS = ("batch", "group")
+
+
+def _groups(channels: int, most: int = 8) -> int:
+    return max(g for g in range(1, most + 1) if channels % g == 0)
+
+
+def set_norm(net: nn.Module, norm: str) -> nn.Module:
+    """``norm="group"`` replaces every BatchNorm in ``net`` by a GroupNorm (up to 8 groups) with
+    the same affine parameters: per-sample statistics, so training and evaluation normalize
+    alike even at batch 2-4, where BatchNorm's running statistics lag behind fast-changing
+    weights. ``"batch"`` keeps BatchNorm (the paper's choice)."""
+    if norm not in NORMS:
+        raise ValueError(f"norm {norm!r} unknown; choose from {list(NORMS)}")
+    if norm == "batch":
+        return net
+    for name, child in net.named_children():
+        if isinstance(child, nn.modules.batchnorm._BatchNorm):
+            setattr(net, name, nn.GroupNorm(_groups(child.num_features), child.num_features))
+        else:
+            set_norm(child, norm)
+    return net
+
+
 class Float32Conv2d(nn.Conv2d):
     """A regression output layer that stays float32 under autocast: in bf16 a normalized depth
     near 1 has steps of 2**-7, i.e. 0.08 mm at the default 10 mm half range."""

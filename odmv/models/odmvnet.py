@@ -39,6 +39,7 @@ from odmv.models.blocks import (
     RegressionHead,
     ResBlock3d,
     conv_bn_act,
+    set_norm,
     stage3d,
 )
 
@@ -92,7 +93,8 @@ class ResidualViewEncoder(nn.Module):
 class ODMVNet(nn.Module):
     """See the module docstring. ``ablation`` names a Table I row (:data:`ABLATION_ROWS`);
     each switch left None follows that row: ``residual`` and ``attention_gates`` ("+RB&AG"),
-    ``aspp``, ``rve``, ``ocd_oaf``, ``ssvr`` ("+Multi-task")."""
+    ``aspp``, ``rve``, ``ocd_oaf``, ``ssvr`` ("+Multi-task"). ``norm``: "batch" (the paper) or
+    "group" (see :func:`odmv.models.blocks.set_norm`)."""
 
     def __init__(
         self,
@@ -107,6 +109,7 @@ class ODMVNet(nn.Module):
         ssvr: bool | None = None,
         aspp_rates: tuple[int, ...] = (2, 4, 6),
         activation_checkpointing: bool = False,
+        norm: str = "batch",
     ):
         super().__init__()
         if ablation not in ABLATION_ROWS:
@@ -156,6 +159,7 @@ class ODMVNet(nn.Module):
             if ssvr
             else None
         )
+        set_norm(self, norm)
 
     def _run(self, module, *args):
         if self.checkpointing and self.training and torch.is_grad_enabled():
