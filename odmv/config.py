@@ -7,6 +7,7 @@ import json
 
 from omegaconf import ListConfig, OmegaConf
 
+from odmv.data.reference import CHANNELS
 from odmv.rig import VIEW_SETS, check_views
 
 
@@ -35,6 +36,16 @@ def n_views(views) -> int:
     return len(view_list(views))
 
 
+def view_channels(reference) -> int:
+    """Network input channels per view (odmv.data.reference)."""
+    return CHANNELS[bool(reference)]
+
+
+def in_channels(views, reference) -> int:
+    """Input channels of a 2D net that stacks every view's channels."""
+    return n_views(views) * view_channels(reference)
+
+
 def csv_list(values) -> str:
     """[0, 1] -> "0,1": a list as a Hydra sweep value (sweep configs' seeds)."""
     return ",".join(str(v) for v in values)
@@ -42,6 +53,8 @@ def csv_list(values) -> str:
 
 for _name, _fn in (
     ("odmv.csv", csv_list),
+    ("odmv.view_channels", view_channels),
+    ("odmv.in_channels", in_channels),
     ("odmv.views", view_list),
     ("odmv.n_views", n_views),
     ("odmv.hash", settings_hash),

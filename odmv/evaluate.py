@@ -20,7 +20,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.metrics import DepthErrors
-from odmv.module import load_module
+from odmv.module import load_module, net_input
 from odmv.simulate import CONF_DIR
 
 matplotlib.use("Agg")
@@ -131,7 +131,7 @@ def evaluate(cfg: DictConfig) -> dict:
     with torch.no_grad():
         for i in range(min(cfg.figures, len(ds))):
             sample = ds[i]
-            out = module(sample["fringes"][None])
+            out = module(net_input(sample)[None])
             pred_mm = module.depth_mm(out)[0, 0].numpy()
             save_figure(
                 out_dir / "figures" / f"{sample['scene_id']}.png",

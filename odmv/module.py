@@ -38,6 +38,7 @@ class FPPModule(L.LightningModule):
         scheduler: dict | None = None,
         log_images: int = 2,
         data_cfg: dict | None = None,
+        input_spec: dict | None = None,
     ):
         super().__init__()
         self.save_hyperparameters()
@@ -64,13 +65,22 @@ class FPPModule(L.LightningModule):
             self.norm = dm.norm
             self.hparams["norm"] = dm.norm.to_dict()
             self.hparams["views"] = list(dm.spec.views)
+            spec = dm.spec  # what predict needs to rebuild the net's input from images
+            self.hparams["input_spec"] = {
+                "reference": spec.reference,
+                "period_px": spec.period_px,
+                "step": spec.step,
+                "n_steps": spec.n_steps,
+            }
 
-    def forward(self, fringes: torch.Tensor) -> dict:
-        return self.net(fringes)
+    def forward(self, inputs: torch.Tensor) -> dict:
+        """``inputs``: the net's input, i.e. a batch's ``inputs`` (fringes plus the reference
+        phase) when the data has them, else its normalized ``fringes``."""
+        return self.net(inputs)
 
     # ---------------------------------------------------------------- steps
     def training_step(self, batch, _):
-        out = self(batch["fringes"])
+        out = self(net_input(batch))
         terms = composite_loss(out, batch, self.weights)
         bs = batch["fringes"].shape[0]
         self.log("train/loss", terms["loss"], prog_bar=True, batch_size=bs)
@@ -85,7 +95,7 @@ class FPPModule(L.LightningModule):
             return self.norm.depth_mm(out["depth"].float())
 
     def _evaluate(self, batch, stage: str) -> tuple[dict, torch.Tensor]:
-        out = self(batch["fringes"])
+        out = self(net_input(batch))
         terms = composite_loss(out, batch, self.weights)
         pred_mm = self.depth_mm(out)
         masks = subset_masks(batch)
@@ -186,6 +196,11 @@ class FPPModule(L.LightningModule):
             lg.log_hyperparams(
                 {"parameters": n, **{f"loss/{k}": str(v) for k, v in asdict(self.weights).items()}}
             )
+
+
+def net_input(batch: dict) -> torch.Tensor:
+    """The tensor a net takes from a batch or sample (see :meth:`FPPModule.forward`)."""
+    return batch["inputs"] if "inputs" in batch else batch["fringes"]
 
 
 def subset_masks(batch: dict) -> dict[str, torch.Tensor]:

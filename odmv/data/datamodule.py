@@ -29,6 +29,7 @@ class FPPDataModule(L.LightningDataModule):
 
     ``simulate``: settings for :class:`odmv.sim.writer.SimSettings` (minus ``out``) used to render
     the dataset into ``root`` when ``root`` holds no manifest; None means the data must exist.
+    ``reference``: add the reference-plane phase to the net's input (odmv.data.reference).
     ``render``: False for a dataset the user names (``data=exr``): it is read, never written,
     even when a preset has filled in ``simulate``.
     """
@@ -53,6 +54,7 @@ class FPPDataModule(L.LightningDataModule):
         intensity_max: float | None = None,
         simulate: dict | None = None,
         render: bool = True,
+        reference: bool = False,
         progress: bool = True,
     ):
         super().__init__()
@@ -69,6 +71,7 @@ class FPPDataModule(L.LightningDataModule):
         self.cache_dir = Path(cache_dir) if cache_dir else self.root.parent / ".odmv-cache"
         self.depth_half_range_mm, self.intensity_max = depth_half_range_mm, intensity_max
         self.simulate = simulate if render else None
+        self.reference = reference
         self.progress = progress
         self.manifest: Manifest | None = None
         self.spec: SampleSpec | None = None
@@ -109,6 +112,7 @@ class FPPDataModule(L.LightningDataModule):
             self.fringe_step,
             self.with_stacks,
             self.with_phase,
+            self.reference,
         )
         sat = m.extra.get("simulation", {}).get("render", {}).get("saturation", 1.0)
         self.norm = Normalization.for_working_distance(

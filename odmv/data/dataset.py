@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 
 from odmv.data.normalize import Normalization
+from odmv.data.reference import network_input, reference_phase
 from odmv.data.subsets import footprint_from_depth, subset_masks
 from odmv.io.exr import ExrError, read_exr
 from odmv.io.manifest import (
@@ -55,6 +56,7 @@ class SampleSpec:
     with_phase: bool = False  # also (sin, cos) of the input image's ground-truth phase
     period_px: float = 0.0  # fringe period of the input image (projector px)
     n_steps: int = 1  # phase steps of its sequence
+    reference: bool = False  # also the reference-plane phase as input (odmv.data.reference)
 
     def key(self) -> dict:
         return asdict(self)
@@ -68,6 +70,7 @@ def check_spec(
     step: int | None,
     with_stacks: bool = False,
     with_phase: bool = False,
+    reference: bool = False,
 ) -> SampleSpec:
     """Resolve and check sample settings against a manifest (one-line DataError on a problem)."""
     try:
@@ -96,7 +99,16 @@ def check_spec(
     if with_stacks and m.images != "full":
         raise DataError(f"data.with_stacks: {m.root} holds no full sequences (images=training)")
     return SampleSpec(
-        views, h, w, f, s, with_stacks, with_phase, m.fringe.periods_px[f], m.fringe.steps
+        views,
+        h,
+        w,
+        f,
+        s,
+        with_stacks,
+        with_phase,
+        m.fringe.periods_px[f],
+        m.fringe.steps,
+        reference,
     )
 
 
@@ -239,6 +251,21 @@ class FringeDataset(torch.utils.data.Dataset):
     ):
         self.manifest, self.ids, self.spec, self.norm, self.cache = m, list(ids), spec, norm, cache
         self.families = {s["id"]: str(s.get("family", "")) for s in m.scenes}
+        self.reference = (
+            torch.from_numpy(
+                reference_phase(
+                    m.rig,
+                    spec.views,
+                    spec.height_px,
+                    spec.width_px,
+                    spec.period_px,
+                    spec.step,
+                    spec.n_steps,
+                )
+            )
+            if spec.reference
+            else None
+        )
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -264,6 +291,8 @@ class FringeDataset(torch.utils.data.Dataset):
             "scene_id": self.ids[i],
             "family": self.families.get(self.ids[i], ""),
         }
+        if self.reference is not None:
+            sample["inputs"] = network_input(sample["fringes"], self.reference)
         if self.spec.with_phase:
             sample["phase_target"] = torch.from_numpy(np.array(raw["phase_target"], np.float32))
         if self.spec.with_stacks:

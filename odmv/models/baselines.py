@@ -246,7 +246,13 @@ class UHRNet(nn.Module):
 
 
 class MTLNet(nn.Module):
-    def __init__(self, in_channels: int = 1, base_width: int = 32, dropout: float = 0.5):
+    def __init__(
+        self,
+        in_channels: int = 1,
+        base_width: int = 32,
+        dropout: float = 0.5,
+        n_views: int | None = None,
+    ):
         super().__init__()
         widths = _widths(base_width)
         self.levels = len(widths) - 1
@@ -254,7 +260,9 @@ class MTLNet(nn.Module):
         self.depth_decoder = _UDecoder(widths)
         self.phase_decoder = _UDecoder(widths)
         self.depth_head = Float32Conv2d(widths[0], 1, 1)
-        self.phase_head = nn.Conv2d(widths[0], 2 * in_channels, 1)
+        # (sin, cos) of each view's phase; n_views differs from in_channels when the input
+        # carries more than the fringe per view (odmv.data.reference)
+        self.phase_head = nn.Conv2d(widths[0], 2 * (n_views or in_channels), 1)
 
     def forward(self, x):
         _check(x, self.levels, "MTLNet")

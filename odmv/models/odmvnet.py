@@ -73,19 +73,21 @@ ABLATION_ROWS: dict[str, dict[str, bool]] = _rows()
 class ResidualViewEncoder(nn.Module):
     """Per-view 2D features (shared weights), stacked into a volume, refined across views."""
 
-    def __init__(self, cout: int, stride: int = 1):
+    def __init__(self, cout: int, stride: int = 1, cin: int = 1):
         super().__init__()
+        self.cin = cin
         self.per_view = nn.Sequential(
-            conv_bn_act(1, cout, stride=stride, dims=2), conv_bn_act(cout, cout, dims=2)
+            conv_bn_act(cin, cout, stride=stride, dims=2), conv_bn_act(cout, cout, dims=2)
         )
         self.cross_view = nn.Sequential(
             conv_bn_act(cout, cout, kernel=(3, 1, 1)),
             conv_bn_act(cout, cout, kernel=(3, 1, 1), act=False),
         )
 
-    def forward(self, x):  # B x S x H x W
-        b, s, h, w = x.shape
-        f = self.per_view(x.reshape(b * s, 1, h, w))
+    def forward(self, x):  # B x (S * cin) x H x W
+        b, sc, h, w = x.shape
+        s = sc // self.cin
+        f = self.per_view(x.reshape(b * s, self.cin, h, w))
         f = f.reshape(b, s, *f.shape[1:]).transpose(1, 2)  # B x C x S x h x w
         return F.relu(f + self.cross_view(f), inplace=True)
 
@@ -110,6 +112,7 @@ class ODMVNet(nn.Module):
         aspp_rates: tuple[int, ...] = (2, 4, 6),
         activation_checkpointing: bool = False,
         norm: str = "batch",
+        view_channels: int = 1,
     ):
         super().__init__()
         if ablation not in ABLATION_ROWS:
@@ -129,7 +132,12 @@ class ODMVNet(nn.Module):
         w = [base_width * 2**i for i in range(LEVELS + 1)]
         self.widths = w
         self.checkpointing = activation_checkpointing
-        self.stem = ResidualViewEncoder(w[0]) if rve else conv_bn_act(1, w[0])
+        self.view_channels = view_channels
+        self.stem = (
+            ResidualViewEncoder(w[0], cin=view_channels)
+            if rve
+            else conv_bn_act(view_channels, w[0])
+        )
         self.encoder = nn.ModuleList(
             stage3d(w[max(i - 1, 0)], w[i], blocks, residual) for i in range(LEVELS)
         )
@@ -167,12 +175,19 @@ class ODMVNet(nn.Module):
         return module(*args)
 
     def forward(self, x: torch.Tensor) -> dict:
+        """``x``: B x (S * view_channels) x H x W, each view's channels together."""
         if x.ndim != 4:
             raise ValueError(f"ODMVNet expects B x S x H x W fringes, got shape {tuple(x.shape)}")
-        b, s, h, wd = x.shape
+        b, sc, h, wd = x.shape
         if h % 2**LEVELS or wd % 2**LEVELS:
             raise ValueError(f"ODMVNet needs H and W divisible by {2**LEVELS}, got {h}x{wd}")
-        f = self.stem(x) if self.flags["rve"] else self.stem(x[:, None])
+        if sc % self.view_channels:
+            raise ValueError(f"ODMVNet expects {self.view_channels} channels per view, got {sc}")
+        if self.flags["rve"]:
+            f = self.stem(x)
+        else:  # B x C x S x H x W volume of the views' channels
+            vol = x.reshape(b, sc // self.view_channels, self.view_channels, h, wd)
+            f = self.stem(vol.transpose(1, 2))
         skips = []
         for i, stage in enumerate(self.encoder):
             f = self._run(stage, f if i == 0 else self.pool(f))

@@ -1,0 +1,104 @@
+"""The reference-plane phase input: physically the phase the flat plane shows, wired through the
+data module, every net, training and prediction."""
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from odmv.data import FPPDataModule
+from odmv.data.reference import network_input, reference_phase
+from odmv.io.exr import read_channel
+from odmv.io.manifest import FringeSpec
+from odmv.predict import predict
+from odmv.rig import VIEW_NAMES, Rig
+from odmv.sim.render import RenderConfig, render_scene
+from odmv.sim.scenes import build_scene
+from odmv.simulate import CONF_DIR
+from odmv.train import train
+
+RIG = Rig()
+
+
+def test_reference_phase_is_the_flat_planes_phase():
+    size, period, step = 64, 240.0, 3
+    clean = RenderConfig(full_well_e=0.0, read_noise=0.0)
+    r = render_scene(
+        build_scene({"parts": []}),
+        RIG,
+        size,
+        size,
+        FringeSpec(),
+        VIEW_NAMES,
+        clean,
+        np.random.default_rng(0),
+        images="training",
+    )
+    ref = reference_phase(RIG, VIEW_NAMES, size, size, period, step, 12)
+    assert ref.shape == (4, 2, size, size)
+    for k, v in enumerate(VIEW_NAMES):
+        lit = r.lit[v]
+        phase = 2 * np.pi * (r.projector_coord[v] / period + step / 12)
+        np.testing.assert_allclose(ref[k, 0][lit], np.sin(phase[lit]), atol=1e-3)
+        np.testing.assert_allclose(ref[k, 1][lit], np.cos(phase[lit]), atol=1e-3)
+        outside = ~r.lit[v] & (ref[k] == 0).all(0)
+        assert outside.any()  # no phase outside the projector's footprint
+
+
+def test_network_input_keeps_each_views_channels_together():
+    fringes = torch.arange(2 * 4 * 3, dtype=torch.float32).reshape(2, 3, 2, 2)  # B S H W
+    ref = -torch.ones(3, 2, 2, 2)
+    x = network_input(fringes, ref)
+    assert x.shape == (2, 9, 2, 2)
+    torch.testing.assert_close(x[:, 0::3], fringes)
+    assert (x[:, 1::3] == -1).all() and (x[:, 2::3] == -1).all()
+
+
+def test_samples_carry_the_input_with_reference(tiny_dataset, tmp_path):
+    dm = FPPDataModule(
+        str(tiny_dataset), resolution=32, reference=True, cache=False, progress=False
+    )
+    dm.prepare_data()
+    dm.setup()
+    s = dm.datasets["test"][0]
+    assert s["inputs"].shape == (12, 32, 32)
+    torch.testing.assert_close(s["inputs"][0::3], s["fringes"])
+
+
+@pytest.mark.parametrize("model", ["odmvnet", "unet", "mtlnet"])
+def test_training_and_prediction_with_the_reference(tiny_dataset, tmp_path, model):
+    overrides = [
+        f"model={model}",
+        "views=2",
+        "reference=true",
+        "data=exr",
+        f"root={tiny_dataset}",
+        "data.resolution=32",
+        "data.batch_size=2",
+        "data.progress=false",
+        f"data.cache_dir={tmp_path}/cache",
+        f"widths.{model}=4",
+        "trainer.max_epochs=1",
+        "trainer.limit_train_batches=2",
+        "trainer.accelerator=cpu",
+        "trainer.enable_progress_bar=false",
+        "trainer.enable_model_summary=false",
+        f"paths.output_dir={tmp_path}",
+        "log_images=0",
+    ]
+    if model == "odmvnet":
+        overrides.append("model.net.blocks=1")
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        metrics = train(compose("train", overrides=overrides))
+        assert metrics["test/mae_mm"] > 0
+        cfg = compose(
+            "predict",
+            [
+                f"ckpt_path={metrics['best_checkpoint']}",
+                f"input={tiny_dataset / 'scenes' / '000004'}",
+                f"out={tmp_path / 'pred'}",
+                f"paths.output_dir={tmp_path}",
+            ],
+        )
+        depth = read_channel(predict(cfg)["depth"], "Z")
+    assert depth.shape == (32, 32) and np.isfinite(depth).all()
