@@ -1,6 +1,6 @@
 """Compare groups of finished runs: mean ± std over seeds, overall, shadowed and per family.
 
-    python experiments/summarize.py 'BatchNorm=outputs/accuracy/bn-*' 'GroupNorm=outputs/accuracy/gn-*'
+    python experiments/summarize.py 'BN=outputs/accuracy/bn-*' 'GN=outputs/accuracy/gn-*'
 
 Each argument is ``LABEL=GLOB`` (run folders holding metrics.json and test_scenes.csv). Prints a
 markdown table: runs, test MAE / RMSE over all pixels, MAE over shadowed pixels, MAE per scene
