@@ -249,22 +249,19 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
 
 
 # ----------------------------------------------------------------------------- header
-def _commit() -> str:
+def _git(*args: str) -> str:
     root = Path(__file__).resolve().parent.parent
+    done = subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True)
+    if done.returncode:
+        raise OSError(done.stderr.strip())
+    return done.stdout.strip()
+
+
+def _commit() -> str:
     try:
-        sha = subprocess.run(
-            ["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
+        sha = _git("rev-parse", "--short", "HEAD")
+        dirty = _git("status", "--porcelain", "--untracked-files=no")
+    except OSError:
         return "unknown (not a git checkout)"
     return sha + (" (with uncommitted changes)" if dirty else "")
 
