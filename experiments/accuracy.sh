@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# Accuracy levers on the mini protocol (docs/accuracy.md): one run per variant and seed, each
+# `python -m odmv.train experiment=mini <overrides> seed=<k>` into outputs/accuracy/<variant>-seed<k>.
+# Resumable: a run whose metrics.json exists is skipped. Summarize with experiments/summarize.py.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PY:-.venv/bin/python}
+SEEDS=${SEEDS:-"0 1"}
+run() {  # run VARIANT OVERRIDES...
+  local variant=$1; shift
+  for seed in $SEEDS; do
+    local dir=outputs/accuracy/$variant-seed$seed
+    [[ -f $dir/metrics.json ]] && continue
+    rm -rf "$dir"
+    echo "$variant seed $seed: $*"
+    "$PY" -m odmv.train experiment=mini "$@" seed="$seed" hydra.run.dir="$dir" \
+      trainer.enable_progress_bar=false data.progress=false > "$dir.log" 2>&1
+    mv "$dir.log" "$dir/train.out"
+  done
+}
+# ODMV-Net, S = 4, full model (Table I row 6); the paper's recipe is the reproduction's row
+run s4-groupnorm norm=group
+run s4-reference reference=true
+run s4-reference-groupnorm reference=true norm=group
+# the same levers for the views comparison and for the strongest cheap baseline
+run s1-reference-groupnorm views=1 reference=true norm=group
+run unet-s1-reference contender=unet_s1 reference=true
