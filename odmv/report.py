@@ -266,6 +266,14 @@ def _commit() -> str:
     return sha + (" (with uncommitted changes)" if dirty else "")
 
 
+def _relative(path: Path) -> str:
+    """A path relative to the working directory where it lies below it (portable reports)."""
+    try:
+        return str(path.resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
+
+
 def _dataset_line(runs: list[Run]) -> str:
     roots = sorted({r.metrics.get("dataset", "") for r in runs} - {""})
     parts = []
@@ -478,14 +486,14 @@ def write_report(
         lines.append("")
     if pending:
         lines += ["### Unfinished runs (not counted)", ""]
-        lines += [f"- `{p}`" for p in pending]
+        lines += [f"- `{_relative(p)}`" for p in pending]
         lines.append("")
     lines += ["### Every run", "", "See `runs.csv` (one line per run and seed)."]
     _write_csv(
         out / "runs.csv",
         [
             {
-                "folder": str(r.folder),
+                "folder": _relative(r.folder),
                 **{k: v for k, v in r.metrics.items() if not isinstance(v, (list, dict))},
                 "views": "+".join(r.metrics.get("views") or []),
             }
