@@ -496,6 +496,11 @@ def write_report(
                 "folder": _relative(r.folder),
                 **{k: v for k, v in r.metrics.items() if not isinstance(v, (list, dict))},
                 "views": "+".join(r.metrics.get("views") or []),
+                **{
+                    k: _relative(Path(r.metrics[k]))
+                    for k in ("best_checkpoint", "dataset")
+                    if r.metrics.get(k)
+                },
             }
             for r in runs
         ],
