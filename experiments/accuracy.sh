@@ -11,7 +11,7 @@ run() {  # run VARIANT OVERRIDES...
   for seed in $SEEDS; do
     local dir=outputs/accuracy/$variant-seed$seed
     [[ -f $dir/metrics.json ]] && continue
-    rm -rf "$dir"
+    rm -rf "$dir"; mkdir -p "$(dirname "$dir")"
     echo "$variant seed $seed: $*"
     "$PY" -m odmv.train experiment=mini "$@" seed="$seed" hydra.run.dir="$dir" \
       trainer.enable_progress_bar=false data.progress=false > "$dir.log" 2>&1
