@@ -400,7 +400,8 @@ def comparison_figures(
             im = axes[2, k].imshow(err, cmap="inferno", vmin=0, vmax=error_scale_mm)
             axes[2, k].set_title(f"|error|, MAE {np.nanmean(err):.3f} mm", fontsize=7)
         fig.colorbar(im, ax=axes[2, n - 1], fraction=0.046, label="|error| (mm)")
-        for ax in list(axes[0, len(inputs[0]) if inputs else 0 : 4]) + list(axes[1:, n:].flat):
+        unused = list(axes[0, len(inputs[0]) if inputs else 0 : 4]) + list(axes[0, 5:])
+        for ax in unused + list(axes[1:, n:].flat):
             ax.axis("off")
         fig.suptitle(f"Fig. 6 layout: test scene {sid} (|error| on a 0-{error_scale_mm} mm scale)")
         fig.tight_layout()
