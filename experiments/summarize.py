@@ -37,7 +37,7 @@ def main(args: list[str]) -> int:
     )
     print("|---|---:|" + "---:|" * (4 + len(families)))
     for arg in args:
-        label, pattern = arg.split("=", 1)
+        label, pattern = arg.rsplit("=", 1)  # labels may hold "=" (S=4), globs do not
         folders = sorted(
             Path(p) for p in glob.glob(pattern) if (Path(p) / "metrics.json").is_file()
         )
