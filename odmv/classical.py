@@ -10,7 +10,6 @@ pixels that is reconstructed.
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -20,8 +19,8 @@ import torch
 from odmv.data.dataset import DataError, check_spec, load_scene, split_scenes
 from odmv.fpp import fuse_views, period_in_camera_px, reconstruct_view
 from odmv.io.manifest import load_manifest
-from odmv.metrics import SUBSETS, DepthErrors, per_image_errors
-from odmv.module import write_test_outputs
+from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_suffix
+from odmv.module import subset_masks, write_json, write_test_outputs
 
 #: Settings of the classical pipeline (documented in docs/reproduce.md).
 MIN_PERIOD_CAMERA_PX = 3.0  # finer sequences alias in the camera and are left out
@@ -77,23 +76,26 @@ def classical_row(
         depth = reconstruct_scene(stack, list(m.fringe.periods_px), cam, projectors)
         gt = torch.from_numpy(raw["depth_mm"][None].astype(np.float32))
         pred = torch.from_numpy(np.nan_to_num(depth, nan=0.0)[None, None].astype(np.float32))
-        ok = torch.from_numpy(np.isfinite(depth)[None, None])
-        valid = torch.isfinite(gt)
-        masks = {
-            "all": valid,
-            "shadowed": valid & torch.from_numpy(raw["shadowed"][None]),
-            "unlit": valid & torch.from_numpy(raw["unlit"][None]),
-        }
+        ok = torch.from_numpy(np.isfinite(depth)[None, None]).float()
+        masks = subset_masks(
+            {
+                "valid": torch.isfinite(gt).float(),
+                "shadowed": torch.from_numpy(raw["shadowed"][None]).float(),
+                "unlit": torch.from_numpy(raw["unlit"][None]).float(),
+            }
+        )
+        reconstructed = {k: mask * ok for k, mask in masks.items()}
         row = {"scene": sid, "family": families.get(sid, "")}
+        for k, v in per_image_subset_errors(pred, gt, reconstructed).items():
+            if not k.startswith("pixels"):
+                row[k] = float(v[0])
         for subset, mask in masks.items():
-            metrics[subset].update(pred, gt, (mask & ok).float())
-            covered[subset][0] += float((mask & ok).sum())
+            metrics[subset].update(pred, gt, reconstructed[subset])
+            covered[subset][0] += float(reconstructed[subset].sum())
             covered[subset][1] += float(mask.sum())
-            errs = per_image_errors(pred, gt, (mask & ok).float())
-            suffix = "" if subset == "all" else f"_{subset}"
-            for name in ("mae_mm", "mse_mm2", "rmse_mm"):
-                row[f"{name}{suffix}"] = float(errs[name][0])
-            row[f"coverage{suffix}"] = float((mask & ok).sum()) / max(float(mask.sum()), 1.0)
+            row[f"coverage{subset_suffix(subset)}"] = float(reconstructed[subset].sum()) / max(
+                float(mask.sum()), 1.0
+            )
         rows.append(row)
         preds["scene_id"].append([sid])
         preds["pred_mm"].append(depth[None].astype(np.float32))
@@ -103,7 +105,7 @@ def classical_row(
     out = {}
     valid_pixels = covered["all"][1]
     for subset in SUBSETS:
-        suffix = "" if subset == "all" else f"_{subset}"
+        suffix = subset_suffix(subset)
         for name, value in metrics[subset].compute().items():
             out[f"test/{name}{suffix}"] = float(value)
         out[f"test/coverage{suffix}"] = covered[subset][0] / max(covered[subset][1], 1.0)
@@ -121,7 +123,5 @@ def classical_row(
     )
     out_dir = Path(out_dir)
     write_test_outputs(out_dir, rows, preds)
-    tmp = out_dir / ".metrics.json.tmp"
-    tmp.write_text(json.dumps(out, indent=1) + "\n")
-    tmp.replace(out_dir / "metrics.json")
+    write_json(out_dir / "metrics.json", out)
     return out

@@ -19,17 +19,39 @@ from torchmetrics import Metric
 SUBSETS = ("all", "shadowed", "unlit")
 
 
+def _masked_sums(pred_mm, target_mm, mask) -> tuple[torch.Tensor, ...]:
+    """Per image (B, float64): sum of |error|, sum of error², number of masked pixels."""
+    m = mask.to(torch.float64).flatten(1)
+    err = (pred_mm.to(torch.float64) - target_mm.to(torch.float64)).flatten(1) * m
+    return err.abs().sum(1), (err**2).sum(1), m.sum(1)
+
+
 def per_image_errors(
     pred_mm: torch.Tensor, target_mm: torch.Tensor, mask: torch.Tensor
 ) -> dict[str, torch.Tensor]:
     """Per image (B): MAE, MSE (mm²), RMSE over the masked pixels (NaN where none) and pixels."""
-    m = mask.to(torch.float64).flatten(1)
-    err = (pred_mm.to(torch.float64) - target_mm.to(torch.float64)).flatten(1) * m
-    n = m.sum(1)
+    abs_sum, sq_sum, n = _masked_sums(pred_mm, target_mm, mask)
     nan = torch.full_like(n, float("nan"))
-    mae = torch.where(n > 0, err.abs().sum(1) / n.clamp_min(1), nan)
-    mse = torch.where(n > 0, (err**2).sum(1) / n.clamp_min(1), nan)
+    mae = torch.where(n > 0, abs_sum / n.clamp_min(1), nan)
+    mse = torch.where(n > 0, sq_sum / n.clamp_min(1), nan)
     return {"mae_mm": mae, "mse_mm2": mse, "rmse_mm": mse.sqrt(), "pixels": n}
+
+
+def subset_suffix(subset: str) -> str:
+    """Metric-name suffix of a pixel subset: "" for all pixels, else "_<subset>"."""
+    return "" if subset == "all" else f"_{subset}"
+
+
+def per_image_subset_errors(
+    pred_mm: torch.Tensor, target_mm: torch.Tensor, masks: dict[str, torch.Tensor]
+) -> dict[str, torch.Tensor]:
+    """:func:`per_image_errors` for every subset in ``masks``, keyed like the logged metrics
+    (``mae_mm``, ``mae_mm_shadowed``, ``pixels_unlit``, ...): the columns of test_scenes.csv."""
+    return {
+        f"{name}{subset_suffix(subset)}": values
+        for subset, mask in masks.items()
+        for name, values in per_image_errors(pred_mm, target_mm, mask).items()
+    }
 
 
 class DepthErrors(Metric):
@@ -45,11 +67,8 @@ class DepthErrors(Metric):
 
     def update(self, pred_mm: torch.Tensor, target_mm: torch.Tensor, mask: torch.Tensor) -> None:
         """B x 1 x H x W predictions and targets in mm; mask B x 1 x H x W (nonzero = counted)."""
-        m = mask.to(torch.float64)
-        err = (pred_mm.to(torch.float64) - target_mm.to(torch.float64)) * m
-        n = m.flatten(1).sum(1)
-        sq = (err**2).flatten(1).sum(1)
-        self.abs_sum += err.abs().sum()
+        abs_sum, sq, n = _masked_sums(pred_mm, target_mm, mask)
+        self.abs_sum += abs_sum.sum()
         self.sq_sum += sq.sum()
         self.pixels += n.sum()
         has = n > 0

@@ -8,6 +8,7 @@ from a checkpoint alone (:func:`load_module`).
 from __future__ import annotations
 
 import csv
+import json
 import os
 from dataclasses import asdict
 from pathlib import Path
@@ -20,7 +21,7 @@ from lightning.pytorch.utilities import rank_zero_only
 
 from odmv.data.normalize import Normalization
 from odmv.losses import LossWeights, composite_loss
-from odmv.metrics import SUBSETS, DepthErrors, per_image_errors
+from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_suffix
 
 
 def build_net(net_cfg: dict) -> torch.nn.Module:
@@ -94,7 +95,8 @@ class FPPModule(L.LightningModule):
         with torch.autocast(out["depth"].device.type, enabled=False):
             return self.norm.depth_mm(out["depth"].float())
 
-    def _evaluate(self, batch, stage: str) -> tuple[dict, torch.Tensor]:
+    def _evaluate(self, batch, stage: str) -> tuple[dict, torch.Tensor, dict]:
+        """Loss and metrics of one batch; returns the output, the depth in mm and the masks."""
         out = self(net_input(batch))
         terms = composite_loss(out, batch, self.weights)
         pred_mm = self.depth_mm(out)
@@ -104,27 +106,21 @@ class FPPModule(L.LightningModule):
         self.log(
             f"{stage}/loss", terms["loss"], batch_size=batch["fringes"].shape[0], sync_dist=True
         )
-        return out, pred_mm
+        return out, pred_mm, masks
 
     def validation_step(self, batch, batch_idx):
-        out, _ = self._evaluate(batch, "val")
+        out, _, _ = self._evaluate(batch, "val")
         if batch_idx == 0 and self.hparams.log_images:
             self._log_images(batch, out)
 
     def test_step(self, batch, _):
-        _, pred_mm = self._evaluate(batch, "test")
+        _, pred_mm, masks = self._evaluate(batch, "test")
         if self.test_dir is None:
             return
-        per = {
-            k: per_image_errors(pred_mm, batch["depth_mm"], m)
-            for k, m in subset_masks(batch).items()
-        }
+        per = per_image_subset_errors(pred_mm, batch["depth_mm"], masks)
         for i, sid in enumerate(batch["scene_id"]):
             row = {"scene": sid, "family": batch["family"][i]}
-            for subset, errs in per.items():
-                for name, values in errs.items():
-                    row[f"{name}_{subset}" if subset != "all" else name] = float(values[i])
-            self._scene_rows.append(row)
+            self._scene_rows.append(row | {k: float(v[i]) for k, v in per.items()})
         for key, value in (
             ("scene_id", list(batch["scene_id"])),
             ("pred_mm", pred_mm[:, 0].float().cpu().numpy()),
@@ -136,7 +132,7 @@ class FPPModule(L.LightningModule):
         valid = self.metrics[f"{stage}_all"].pixels
         for subset in SUBSETS:
             metric = self.metrics[f"{stage}_{subset}"]
-            suffix = "" if subset == "all" else f"_{subset}"
+            suffix = subset_suffix(subset)
             for name, value in metric.compute().items():
                 self.log(f"{stage}/{name}{suffix}", value.float(), sync_dist=False)
             if subset != "all":  # the subset's share of the valid pixels
@@ -207,6 +203,13 @@ def subset_masks(batch: dict) -> dict[str, torch.Tensor]:
     """Metric pixel masks (B x 1 x H x W) from the batch's ground truth: odmv.data.subsets."""
     valid = batch["valid"]
     return {"all": valid, "shadowed": batch["shadowed"] * valid, "unlit": batch["unlit"] * valid}
+
+
+def write_json(path: Path, data: dict) -> None:
+    """Write ``data`` as JSON atomically (a temporary name, then rename)."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(data, indent=1) + "\n")
+    os.replace(tmp, path)
 
 
 SCENES_CSV = "test_scenes.csv"

@@ -8,7 +8,6 @@ with the run's overrides) into the run folder; multiruns also collect every job 
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -17,7 +16,7 @@ import lightning as L
 from omegaconf import DictConfig, OmegaConf
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
-from odmv.module import FPPModule
+from odmv.module import FPPModule, write_json
 from odmv.simulate import CONF_DIR
 from odmv.sweep import append_row
 
@@ -81,18 +80,12 @@ def train(cfg: DictConfig) -> dict[str, float]:
             dataset=str(Path(dm.root).resolve()),
             overrides=" ".join(overrides),
         )
-        _write_json(out_dir / "metrics.json", metrics)
+        write_json(out_dir / "metrics.json", metrics)
         append_row(
             out_dir / "metrics.csv",
             {k: v for k, v in metrics.items() if not isinstance(v, list)},
         )
     return metrics
-
-
-def _write_json(path: Path, data: dict) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(data, indent=1) + "\n")
-    tmp.replace(path)
 
 
 def _task_overrides() -> list[str]:
