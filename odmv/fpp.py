@@ -49,9 +49,7 @@ def triangulate_depth(u_px: np.ndarray, camera: Camera, projector: Projector) ->
     Intersects the pixel-centre ray (lens distortion inverted) with the projector plane of
     constant column u: (P_row0 - u P_row2) . [X, 1] = 0.
     """
-    h, w = u_px.shape
-    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    origin, d = camera.pixel_rays(np.stack([jj, ii], -1))
+    origin, d = camera.centre_rays()
     P = projector.P
     a = P[0, :3] - u_px[..., None] * P[2, :3]
     b = P[0, 3] - u_px * P[2, 3]

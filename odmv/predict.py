@@ -66,10 +66,8 @@ def read_inputs(path: Path, views: list[str], size: tuple[int, int], manifest: s
 
 def point_cloud(depth_mm: np.ndarray, cam: Camera) -> np.ndarray:
     """Camera-frame points (N x 3, mm) of every pixel centre at its depth."""
-    h, w = depth_mm.shape
-    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    _, d = cam.pixel_rays(np.stack([jj, ii], -1).reshape(-1, 2))
-    d_cam = d @ cam.R.T  # camera-frame directions
+    _, d = cam.centre_rays()
+    d_cam = d.reshape(-1, 3) @ cam.R.T  # camera-frame directions
     pts = d_cam / d_cam[:, 2:3] * depth_mm.reshape(-1, 1)
     return pts[np.isfinite(pts).all(1)]
 

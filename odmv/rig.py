@@ -136,6 +136,11 @@ class Projector:
         uvw = cam @ self.K.T
         return uvw[..., :2] / uvw[..., 2:3]
 
+    def in_image(self, uv: np.ndarray) -> np.ndarray:
+        """Whether projector pixel coordinates (..., 2) fall on the projector's image."""
+        u, v = uv[..., 0], uv[..., 1]
+        return (u >= 0) & (u < self.width_px) & (v >= 0) & (v < self.height_px)
+
     def rays(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Projector pixels (..., 2) -> (origin (3,), unit world directions (..., 3))."""
         ones = np.ones(uv.shape[:-1] + (1,))
@@ -191,6 +196,11 @@ class Camera:
         d_cam = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1)
         d = d_cam @ self.R
         return self.center, d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+    def centre_rays(self) -> tuple[np.ndarray, np.ndarray]:
+        """The rays through every pixel centre: (centre (3,), unit directions (H, W, 3))."""
+        jj, ii = np.meshgrid(np.arange(self.width_px) + 0.5, np.arange(self.height_px) + 0.5)
+        return self.pixel_rays(np.stack([jj, ii], -1))
 
     def project(self, points: np.ndarray, distorted: bool = True) -> np.ndarray:
         """World points (..., 3) -> pixel coordinates (..., 2)."""

@@ -25,21 +25,14 @@ def reference_phase(
     """(S, 2, H, W) float32: sin and cos of the phase of image ``step`` of the sequence with
     period ``period_px`` on the reference plane z = 0, at each pixel centre (0 outside the
     projector's footprint). Same convention as the renderer: 2 pi u / P + 2 pi n / N."""
-    cam = rig.camera_at(width_px, height_px)
-    jj, ii = np.meshgrid(np.arange(width_px) + 0.5, np.arange(height_px) + 0.5)
-    origin, d = cam.pixel_rays(np.stack([jj, ii], -1))
+    origin, d = rig.camera_at(width_px, height_px).centre_rays()
     pts = origin + (-origin[2] / d[..., 2])[..., None] * d
     projectors = rig.projectors()
     out = np.zeros((len(views), 2, height_px, width_px), np.float32)
     for k, v in enumerate(views):
         p = projectors[v]
         uv = p.project(pts)
-        inside = (
-            (uv[..., 0] >= 0)
-            & (uv[..., 0] < p.width_px)
-            & (uv[..., 1] >= 0)
-            & (uv[..., 1] < p.height_px)
-        )
+        inside = p.in_image(uv)
         phase = 2 * np.pi * (uv[..., 0] / period_px + step / n_steps)
         out[k, 0] = np.where(inside, np.sin(phase), 0)
         out[k, 1] = np.where(inside, np.cos(phase), 0)

@@ -28,8 +28,7 @@ def footprint_from_depth(rig: Rig, depth_mm: np.ndarray, views) -> np.ndarray:
     The point is the pixel-centre ray (distortion inverted) at the ground-truth depth."""
     h, w = depth_mm.shape
     cam = rig.camera_at(w, h)
-    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    origin, d = cam.pixel_rays(np.stack([jj, ii], -1))
+    origin, d = cam.centre_rays()
     t = (depth_mm.astype(np.float64) - cam.depth(origin)) / (d @ cam.R[2])
     pts = origin + t[..., None] * d
     projectors = rig.projectors()
@@ -37,14 +36,7 @@ def footprint_from_depth(rig: Rig, depth_mm: np.ndarray, views) -> np.ndarray:
     for v in views:
         p = projectors[v]
         z = (pts @ p.R.T + p.t)[..., 2]
-        uv = p.project(pts)
-        out.append(
-            (z > 0)
-            & (uv[..., 0] >= 0)
-            & (uv[..., 0] < p.width_px)
-            & (uv[..., 1] >= 0)
-            & (uv[..., 1] < p.height_px)
-        )
+        out.append((z > 0) & p.in_image(p.project(pts)))
     return np.stack(out)
 
 
