@@ -4,36 +4,21 @@ data module, every net, training and prediction."""
 import numpy as np
 import pytest
 import torch
+from helpers import RIG, render
 from hydra import compose, initialize_config_dir
 
 from odmv.data import FPPDataModule
 from odmv.data.reference import network_input, reference_phase
 from odmv.io.exr import read_channel
-from odmv.io.manifest import FringeSpec
 from odmv.predict import predict
-from odmv.rig import VIEW_NAMES, Rig
-from odmv.sim.render import RenderConfig, render_scene
-from odmv.sim.scenes import build_scene
+from odmv.rig import VIEW_NAMES
 from odmv.simulate import CONF_DIR
 from odmv.train import train
-
-RIG = Rig()
 
 
 def test_reference_phase_is_the_flat_planes_phase():
     size, period, step = 64, 240.0, 3
-    clean = RenderConfig(full_well_e=0.0, read_noise=0.0)
-    r = render_scene(
-        build_scene({"parts": []}),
-        RIG,
-        size,
-        size,
-        FringeSpec(),
-        VIEW_NAMES,
-        clean,
-        np.random.default_rng(0),
-        images="training",
-    )
+    r = render([], size)
     ref = reference_phase(RIG, VIEW_NAMES, size, size, period, step, 12)
     assert ref.shape == (4, 2, size, size)
     for k, v in enumerate(VIEW_NAMES):

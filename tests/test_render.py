@@ -4,23 +4,12 @@ import math
 
 import numpy as np
 import pytest
+from helpers import FRINGE, RIG, render
 
 from odmv.fpp import triangulate_depth, unwrap_temporal, wrapped_phase
-from odmv.io.manifest import FringeSpec, fringe_name
-from odmv.rig import VIEW_NAMES, Rig
-from odmv.sim.render import RenderConfig, render_scene
-from odmv.sim.scenes import build_scene
-
-RIG = Rig()
-CLEAN = RenderConfig(full_well_e=0.0, read_noise=0.0)
-FRINGE = FringeSpec()
-
-
-def _render(parts, size, images="training", cfg=CLEAN):
-    scene = build_scene({"parts": parts})
-    return render_scene(
-        scene, RIG, size, size, FRINGE, VIEW_NAMES, cfg, np.random.default_rng(0), images=images
-    )
+from odmv.io.manifest import fringe_name
+from odmv.rig import VIEW_NAMES
+from odmv.sim.render import RenderConfig
 
 
 def _plane_hits(size, normal, point):
@@ -33,7 +22,7 @@ def _plane_hits(size, normal, point):
 
 
 def test_flat_ground_depth_and_frustum():
-    r = _render([], 96)
+    r = render([], 96)
     cam, pts = _plane_hits(96, np.array([0.0, 0, 1]), np.zeros(3))
     assert np.abs(r.depth_mm - cam.depth(pts)).max() < 1e-3
     for name, proj in RIG.projectors().items():
@@ -58,7 +47,7 @@ def test_tilted_plane_depth_is_analytic():
         "rotation_deg": [tilt, 0, 0],
         "albedo": 0.7,
     }
-    r = _render([slab], 96)
+    r = render([slab], 96)
     a = math.radians(tilt)
     normal = np.array([0, -math.sin(a), math.cos(a)])
     cam, pts = _plane_hits(96, normal, np.array([0, 0, 6.0]) + 0.5 * normal)
@@ -81,7 +70,7 @@ def test_box_shadow_length_and_side(view):
         "albedo": 0.8,
         "position": [ax * offset, ay * offset, h / 2],
     }
-    r = _render([box], size)
+    r = render([box], size)
     px_mm = 35.47 / size
     expected_px = h * math.tan(math.radians(26)) / px_mm
     ground = np.abs(r.depth_mm - 150.0) < 1e-3
@@ -110,7 +99,7 @@ def full_render():
         {"shape": "sphere", "size": [3.0], "position": [-6, 5, 1.5], "albedo": 0.6},
         {"shape": "cylinder", "size": [2, 6], "position": [-5, -6, 3], "albedo": 0.7},
     ]
-    return _render(parts, 128, images="full")
+    return render(parts, 128, images="full")
 
 
 def _interior(lit, depth):
@@ -154,12 +143,12 @@ def test_unwrapped_phase_triangulates_to_ground_truth_depth(full_render, view):
 
 def test_noise_gamma_and_defocus_change_images_as_expected():
     parts = [{"shape": "box", "size": [6, 5, 4], "position": [3, -2, 2], "albedo": 0.8}]
-    clean = _render(parts, 64, images="full")
-    noisy = _render(parts, 64, images="full", cfg=RenderConfig())
+    clean = render(parts, 64, images="full")
+    noisy = render(parts, 64, images="full", cfg=RenderConfig())
     key = fringe_name("right", 2, 0)
     diff = noisy.fringes[key] - clean.fringes[key]
     assert 0.002 < diff.std() < 0.02  # Poisson-Gaussian at ~20k e- full well
-    blurred = _render(
+    blurred = render(
         parts,
         64,
         images="full",
@@ -167,7 +156,7 @@ def test_noise_gamma_and_defocus_change_images_as_expected():
     )
     fine = np.abs(np.diff(clean.fringes[key], axis=1)).mean()
     assert np.abs(np.diff(blurred.fringes[key], axis=1)).mean() < 0.8 * fine
-    gamma = _render(
+    gamma = render(
         parts, 64, images="full", cfg=RenderConfig(full_well_e=0, read_noise=0, projector_gamma=2.2)
     )
     phase_clean = _phases(clean, "right")[-1]

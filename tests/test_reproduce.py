@@ -8,20 +8,16 @@ import json
 import numpy as np
 import pytest
 import torch
+from helpers import RIG, render
 from hydra import compose, initialize_config_dir
 
 from odmv.classical import classical_row
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import footprint_from_depth, subset_masks
-from odmv.io.manifest import FringeSpec
 from odmv.module import FPPModule
 from odmv.reproduce import plan, reproduce, sweep_overrides
-from odmv.rig import VIEW_NAMES, Rig
-from odmv.sim.render import RenderConfig, render_scene
-from odmv.sim.scenes import build_scene
+from odmv.rig import VIEW_NAMES
 from odmv.simulate import CONF_DIR
-
-RIG = Rig()
 
 
 def test_depth_in_mm_under_bf16_autocast_matches_float32():
@@ -55,17 +51,7 @@ def test_subsets_of_a_box_scene():
     projector's footprint are `unlit`, the box top (lit by all four) is neither."""
     size = 64
     box = {"shape": "box", "size": [6, 6, 4], "position": [0, 0, 2], "albedo": 0.8}
-    clean = RenderConfig(full_well_e=0.0, read_noise=0.0)
-    r = render_scene(
-        build_scene({"parts": [box]}),
-        RIG,
-        size,
-        size,
-        FringeSpec(),
-        VIEW_NAMES,
-        clean,
-        np.random.default_rng(0),
-    )
+    r = render([box], size)
     lit = np.stack([r.lit[v] for v in VIEW_NAMES])
     foot = np.stack([r.footprint[v] for v in VIEW_NAMES])
     assert not (lit & ~foot).any()  # lit implies inside the footprint
