@@ -248,3 +248,46 @@ def test_subsets_without_footprint_file_fall_back_to_the_rig(dataset_copy, tmp_p
     without = _dm(dataset_copy, tmp_path).datasets["test"][0]
     assert (with_file["shadowed"] == without["shadowed"]).float().mean() > 0.99
     assert torch.equal(with_file["unlit"], without["unlit"])
+
+
+def test_train_steps_add_one_sample_per_phase_step(tiny_dataset, tmp_path):
+    dm = _dm(tiny_dataset, tmp_path, train_steps=[0, 5], reference=True)
+    plain = _dm(tiny_dataset, tmp_path)
+    train, n = dm.datasets["train"], len(plain.datasets["train"])
+    assert len(train) == 2 * n and len(dm.datasets["val"]) == len(plain.datasets["val"])
+    a, b = train[0], train[n]  # the same scene at steps 0 and 5
+    assert a["scene_id"] == b["scene_id"] and torch.equal(a["depth"], b["depth"])
+    scene = dm.manifest.scene_dir(b["scene_id"])
+    raw = read_channel(scene / "fringe" / "right_f2_s05.exr", "Y")
+    assert torch.equal(b["fringes"][0], torch.from_numpy(2 * np.clip(raw, 0, 1) - 1))
+    # each step's reference phase is shifted by its step: 2 pi * 5 / 12
+    ref_a, ref_b = a["inputs"][1:3], b["inputs"][1:3]
+    angle = torch.atan2(ref_b[0], ref_b[1]) - torch.atan2(ref_a[0], ref_a[1])
+    inside = ref_a.abs().sum(0) > 0
+    shift = torch.remainder(angle[inside], 2 * np.pi)
+    torch.testing.assert_close(shift, torch.full_like(shift, 2 * np.pi * 5 / 12), atol=1e-4, rtol=0)
+
+
+def test_train_steps_need_full_sequences_and_valid_steps(tiny_dataset, tmp_path):
+    from odmv.sim.writer import SimSettings, simulate
+
+    out = tmp_path / "training-only"
+    simulate(SimSettings(out=out, scenes=3, height_px=32, width_px=32, images="training"), 1, False)
+    with pytest.raises(DataError, match="train_steps.*images=full"):
+        _dm(out, tmp_path, resolution=32, train_steps="all")
+    with pytest.raises(DataError, match="train_steps: 12 out of range"):
+        _dm(tiny_dataset, tmp_path, resolution=32, train_steps=[12])
+    with pytest.raises(DataError, match="train_steps: 'some'"):
+        _dm(tiny_dataset, tmp_path, resolution=32, train_steps="some")
+
+
+def test_height_target_puts_the_reference_plane_at_zero(tiny_dataset, tmp_path):
+    dm = _dm(tiny_dataset, tmp_path, depth_target="height")
+    samples = [dm.datasets["train"][i] for i in range(len(dm.datasets["train"]))]
+    # a scene where the base plane (at the working distance) shows; pcb boards may cover it
+    s = max(samples, key=lambda s: (s["depth_mm"] > 150.0 - 1e-3).float().mean())
+    plane = s["depth_mm"] > 150.0 - 1e-3
+    assert plane.float().mean() > 0.2 and s["depth"][plane].abs().max() < 1e-4
+    torch.testing.assert_close(dm.norm.depth_mm(s["depth"]), s["depth_mm"])
+    height_mm = 150.0 - s["depth_mm"]
+    torch.testing.assert_close(s["depth"], height_mm / 10.0)  # up, in half ranges

@@ -113,3 +113,21 @@ def test_group_norm_switch_replaces_every_batch_norm():
         torch.testing.assert_close(both[:1], one, atol=1e-5, rtol=1e-4)
     with pytest.raises(ValueError, match="norm 'layer' unknown"):
         ODMVNet(base_width=4, blocks=1, norm="layer")
+
+
+def test_strided_view_encoder_keeps_the_output_scales():
+    net = _tiny(rve_stride=2).train()
+    x = torch.rand(2, 3, 64, 64) * 2 - 1
+    out = net(x)
+    assert out["depth"].shape == (2, 1, 64, 64) and out["views"].shape == (2, 3, 64, 64)
+    assert [a.shape for a in out["aux"]] == [(2, 1, 32, 32), (2, 1, 16, 16)]
+    # the backbone (and its OCD masks) run at half resolution
+    assert [m.shape[-1] for m in out["occlusion"]] == [32, 16, 8, 4]
+    loss = out["depth"].mean() + sum(a.mean() for a in out["aux"]) + out["views"].pow(2).mean()
+    (loss + sum(m.mean() for m in out["occlusion"])).backward()
+    missing = [n for n, p in net.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0]
+    assert not missing, missing
+    with pytest.raises(ValueError, match="divisible by 32"):
+        net(torch.rand(1, 3, 48, 48))
+    with pytest.raises(ValueError, match="needs the Residual View Encoder"):
+        _tiny(ablation="aspp", rve_stride=2)

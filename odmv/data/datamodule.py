@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import json
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import lightning as L
 import torch
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+from torch.utils.data import ConcatDataset
 
 from odmv.data.cache import ArrayCache
 from odmv.data.dataset import (
@@ -32,6 +34,11 @@ class FPPDataModule(L.LightningDataModule):
     ``reference``: add the reference-plane phase to the net's input (odmv.data.reference).
     ``render``: False for a dataset the user names (``data=exr``): it is read, never written,
     even when a preset has filled in ``simulate``.
+    ``train_steps``: beyond the paper, more training samples from the same scenes: the phase
+    steps of the input frequency that the train split draws from ("all", or a list of step
+    indices; needs a dataset with full sequences). Each step is one more sample per scene, with
+    its own reference phase; validation and test keep ``fringe_step``, so the protocol's
+    metrics do not change. None: the paper's one image per scene.
     """
 
     def __init__(
@@ -51,10 +58,12 @@ class FPPDataModule(L.LightningDataModule):
         cache: bool = True,
         cache_dir: str | None = None,
         depth_half_range_mm: float = 10.0,
+        depth_target: str = "depth",
         intensity_max: float | None = None,
         simulate: dict | None = None,
         render: bool = True,
         reference: bool = False,
+        train_steps: str | list[int] | None = None,
         progress: bool = True,
     ):
         super().__init__()
@@ -70,14 +79,16 @@ class FPPDataModule(L.LightningDataModule):
         self.cache = cache
         self.cache_dir = Path(cache_dir) if cache_dir else self.root.parent / ".odmv-cache"
         self.depth_half_range_mm, self.intensity_max = depth_half_range_mm, intensity_max
+        self.depth_target = depth_target
         self.simulate = simulate if render else None
         self.reference = reference
+        self.train_steps = train_steps
         self.progress = progress
         self.manifest: Manifest | None = None
         self.spec: SampleSpec | None = None
         self.norm: Normalization | None = None
         self.splits: dict[str, list[str]] = {}
-        self.datasets: dict[str, FringeDataset] = {}
+        self.datasets: dict[str, torch.utils.data.Dataset] = {}
 
     # ------------------------------------------------------------------ preparation
     def prepare_data(self) -> None:
@@ -119,27 +130,53 @@ class FPPDataModule(L.LightningDataModule):
             m.rig.camera.working_distance_mm,
             self.depth_half_range_mm,
             self.intensity_max if self.intensity_max is not None else sat,
+            self.depth_target,
         )
         self.splits = split_scenes(m, self.split_fractions, self.split_seed)
         for name, ids in self.splits.items():
-            self.datasets[name] = FringeDataset(
-                m, ids, self.spec, self.norm, self._checked_cache(name, ids)
-            )
+            specs = self._train_specs() if name == "train" and self.train_steps else [self.spec]
+            parts = [
+                FringeDataset(m, ids, spec, self.norm, self._checked_cache(name, ids, spec))
+                for spec in specs
+            ]
+            self.datasets[name] = parts[0] if len(parts) == 1 else ConcatDataset(parts)
 
-    def _checked_cache(self, split: str, ids: list[str]) -> ArrayCache | None:
+    def _train_specs(self) -> list[SampleSpec]:
+        """One sample spec per phase step of ``train_steps`` (checked like ``fringe_step``)."""
+        m = self.manifest
+        steps = range(m.fringe.steps) if self.train_steps == "all" else self.train_steps
+        if isinstance(steps, str) or not len(steps):
+            raise DataError(
+                f"data.train_steps: {self.train_steps!r} is not 'all' or a list of steps"
+            )
+        if m.images != "full":
+            raise DataError(
+                f"data.train_steps: {m.root} holds only the training image (render it with "
+                "images=full)"
+            )
+        return [replace(self.spec, step=self._step(s)) for s in steps]
+
+    def _step(self, s) -> int:
+        n = self.manifest.fringe.steps
+        if not isinstance(s, int) or not 0 <= s < n:
+            raise DataError(f"data.train_steps: {s!r} out of range for {n} steps")
+        return s
+
+    def _checked_cache(self, split: str, ids: list[str], spec: SampleSpec) -> ArrayCache | None:
         """Decode every sample of a split once, so bad files fail here, not mid-epoch; with
         the cache on, the decoded arrays are kept for the epochs to come."""
         if not ids:
             return None
-        key = fingerprint(self.manifest, ids, self.spec) if self.cache else None
+        key = fingerprint(self.manifest, ids, spec) if self.cache else None
         folder = self.cache_dir / f"{self.root.name}-{split}-{key}" if key else None
         if folder is not None and ArrayCache.complete(folder):
             return ArrayCache(folder)
 
         def load(sid):
-            return load_scene(self.manifest, sid, self.spec)
+            return load_scene(self.manifest, sid, spec)
 
-        columns = (TextColumn(f"checking {split}"), BarColumn(), MofNCompleteColumn())
+        label = split if spec == self.spec else f"{split} (step {spec.step})"
+        columns = (TextColumn(f"checking {label}"), BarColumn(), MofNCompleteColumn())
         with Progress(*columns, disable=not self.progress, transient=True) as bar:
             task = bar.add_task(split, total=len(ids))
             if folder is None:
@@ -147,7 +184,7 @@ class FPPDataModule(L.LightningDataModule):
                     load(sid)
                     bar.advance(task)
                 return None
-            return ArrayCache.build(folder, ids, self.spec, load, lambda: bar.advance(task))
+            return ArrayCache.build(folder, ids, spec, load, lambda: bar.advance(task))
 
     # ------------------------------------------------------------------ loaders
     def _loader(self, split: str, shuffle: bool) -> torch.utils.data.DataLoader:

@@ -2,8 +2,12 @@
 
 Fringe images (linear intensity, 0 .. ``intensity_max``) map to [-1, 1] so the view
 reconstruction head's Tanh can match them. Depth (mm, camera-axis z) maps to
-``(depth_mm - center_mm) / half_range_mm``; the defaults put the reference plane (the working
-distance) at +1 and objects up to 2 * half_range_mm tall towards -1.
+``(depth_mm - center_mm) / half_range_mm``. Two targets (``for_working_distance``):
+- ``depth`` (the default): the reference plane (the working distance) at +1 and objects up to
+  2 * half_range_mm tall towards -1;
+- ``height`` (beyond the paper): height above the reference plane, the plane at 0 and objects
+  2 * half_range_mm tall at +2 (the same dynamic range, so SSIM's L stays 2). The scale is then
+  negative: depth falls as height rises.
 """
 
 from __future__ import annotations
@@ -22,9 +26,17 @@ class Normalization:
 
     @classmethod
     def for_working_distance(
-        cls, working_distance_mm: float, half_range_mm: float = 10.0, intensity_max: float = 1.0
+        cls,
+        working_distance_mm: float,
+        half_range_mm: float = 10.0,
+        intensity_max: float = 1.0,
+        target: str = "depth",
     ) -> Normalization:
-        return cls(intensity_max, working_distance_mm - half_range_mm, half_range_mm)
+        if target == "depth":
+            return cls(intensity_max, working_distance_mm - half_range_mm, half_range_mm)
+        if target == "height":
+            return cls(intensity_max, working_distance_mm, -half_range_mm)
+        raise ValueError(f"data.depth_target: {target!r} is not 'depth' or 'height'")
 
     def fringes(self, images):
         """Linear intensity -> [-1, 1] (clipped at 0 and intensity_max)."""

@@ -4,10 +4,16 @@ Input B x S x H x W normalized fringes (S views, H and W multiples of 16). Insid
 a 3D volume B x C x S x h x w whose view axis is the depth axis of the 3D convolutions.
 
 Choices where the paper (Sec. II.A, Figs. 1-2) is silent, as implemented here:
-- Residual View Encoder: the per-view strided 2D convolutions share weights (the paper's "hard
-  parameter sharing"; the net then takes any S and any view order) and use stride 1, so the Main
-  output sits at full resolution; two anisotropic (3,1,1) convolutions mix views, and a residual
-  connection adds the stacked per-view features back. With ``rve`` off, a plain 3x3x3 conv stem.
+- Residual View Encoder: the per-view 2D convolutions share weights (the paper's "hard
+  parameter sharing"; the net then takes any S and any view order); two anisotropic (3,1,1)
+  convolutions mix views, and a residual connection adds the stacked per-view features back.
+  With ``rve`` off, a plain 3x3x3 conv stem. ``rve_stride`` 1 (default) keeps the whole 3D
+  backbone at full resolution. ``rve_stride`` 2 (the paper's "strided convolutions"; 4x less
+  backbone compute) runs the backbone at half resolution: the RVE keeps a full-resolution
+  per-view feature (half the base width), a transposed (1,2,2) convolution brings the last
+  decoder stage back to full resolution, one 3D block merges it with that feature, and Main is
+  fused and regressed there; Aux1 and Aux2 then sit on the decoder's 1/2 and 1/4 stages, the
+  paper's scales.
 - Backbone: four encoder stages (full, 1/2, 1/4, 1/8 resolution) of ``blocks`` 3D residual blocks,
   max-pooling (1,2,2) between them, a bottleneck at 1/16, and a mirrored decoder with transposed
   (1,2,2) convolutions. Without ``residual``, stages are vanilla double conv-BN-ReLU blocks.
@@ -76,20 +82,32 @@ class ResidualViewEncoder(nn.Module):
     def __init__(self, cout: int, stride: int = 1, cin: int = 1):
         super().__init__()
         self.cin = cin
+        # stride 2: a full-resolution layer first, whose features the Main output gets back
+        self.full = conv_bn_act(cin, cout // 2, dims=2) if stride > 1 else None
+        first = cout // 2 if stride > 1 else cin
         self.per_view = nn.Sequential(
-            conv_bn_act(cin, cout, stride=stride, dims=2), conv_bn_act(cout, cout, dims=2)
+            conv_bn_act(first, cout, stride=stride, dims=2), conv_bn_act(cout, cout, dims=2)
         )
         self.cross_view = nn.Sequential(
             conv_bn_act(cout, cout, kernel=(3, 1, 1)),
             conv_bn_act(cout, cout, kernel=(3, 1, 1), act=False),
         )
 
-    def forward(self, x):  # B x (S * cin) x H x W
+    @staticmethod
+    def _volume(f: torch.Tensor, b: int) -> torch.Tensor:  # (B*S) x C x h x w -> B x C x S x h x w
+        return f.reshape(b, -1, *f.shape[1:]).transpose(1, 2)
+
+    def forward(self, x):
+        """B x (S * cin) x H x W -> (volume B x C x S x h x w, the full-resolution volume
+        B x C/2 x S x H x W with stride 2, else None)."""
         b, sc, h, w = x.shape
-        s = sc // self.cin
-        f = self.per_view(x.reshape(b * s, self.cin, h, w))
-        f = f.reshape(b, s, *f.shape[1:]).transpose(1, 2)  # B x C x S x h x w
-        return F.relu(f + self.cross_view(f), inplace=True)
+        f = x.reshape(b * (sc // self.cin), self.cin, h, w)
+        full = None
+        if self.full is not None:
+            f = self.full(f)
+            full = self._volume(f, b)
+        f = self._volume(self.per_view(f), b)
+        return F.relu(f + self.cross_view(f), inplace=True), full
 
 
 class ODMVNet(nn.Module):
@@ -113,6 +131,7 @@ class ODMVNet(nn.Module):
         activation_checkpointing: bool = False,
         norm: str = "batch",
         view_channels: int = 1,
+        rve_stride: int = 1,
     ):
         super().__init__()
         if ablation not in ABLATION_ROWS:
@@ -129,12 +148,17 @@ class ODMVNet(nn.Module):
             k: ABLATION_ROWS[ablation][k] if v is None else bool(v) for k, v in given.items()
         }
         residual, attention_gates, aspp, rve, ocd_oaf, ssvr = (self.flags[k] for k in SWITCHES)
+        if rve_stride not in (1, 2):
+            raise ValueError(f"rve_stride {rve_stride} unsupported; choose 1 or 2")
+        if rve_stride > 1 and not rve:
+            raise ValueError("rve_stride 2 needs the Residual View Encoder (rve on)")
+        self.stride = rve_stride
         w = [base_width * 2**i for i in range(LEVELS + 1)]
         self.widths = w
         self.checkpointing = activation_checkpointing
         self.view_channels = view_channels
         self.stem = (
-            ResidualViewEncoder(w[0], cin=view_channels)
+            ResidualViewEncoder(w[0], rve_stride, view_channels)
             if rve
             else conv_bn_act(view_channels, w[0])
         )
@@ -158,12 +182,18 @@ class ODMVNet(nn.Module):
             else None
         )
         self.ocd = nn.ModuleList(OcclusionDetector(w[i]) for i in levels) if ocd_oaf else None
-        # output heads at Main (level 0), Aux1 (level 1), Aux2 (level 2)
-        heads = range(3)
-        self.fusion = nn.ModuleList(OcclusionAwareFusion(w[i]) for i in heads) if ocd_oaf else None
-        self.heads = nn.ModuleList(RegressionHead(w[i]) for i in heads)
+        # stride 2: the full-resolution stage after the decoder (see the module docstring)
+        if rve_stride > 1:
+            self.up_full = nn.ConvTranspose3d(w[0], w[0] // 2, (1, 2, 2), stride=(1, 2, 2))
+            self.decoder_full = conv_bn_act(w[0], w[0] // 2)
+        # output heads Main, Aux1, Aux2: the channels of the stages they read
+        head_ch = [w[0], w[1], w[2]] if rve_stride == 1 else [w[0] // 2, w[0], w[1]]
+        self.fusion = nn.ModuleList(OcclusionAwareFusion(c) for c in head_ch) if ocd_oaf else None
+        self.heads = nn.ModuleList(RegressionHead(c) for c in head_ch)
         self.ssvr = (
-            nn.Sequential(conv_bn_act(w[0], w[0] // 2), nn.Conv3d(w[0] // 2, 1, 1))
+            nn.Sequential(
+                conv_bn_act(head_ch[0], head_ch[0] // 2), nn.Conv3d(head_ch[0] // 2, 1, 1)
+            )
             if ssvr
             else None
         )
@@ -179,12 +209,14 @@ class ODMVNet(nn.Module):
         if x.ndim != 4:
             raise ValueError(f"ODMVNet expects B x S x H x W fringes, got shape {tuple(x.shape)}")
         b, sc, h, wd = x.shape
-        if h % 2**LEVELS or wd % 2**LEVELS:
-            raise ValueError(f"ODMVNet needs H and W divisible by {2**LEVELS}, got {h}x{wd}")
+        m = self.stride * 2**LEVELS
+        if h % m or wd % m:
+            raise ValueError(f"ODMVNet needs H and W divisible by {m}, got {h}x{wd}")
         if sc % self.view_channels:
             raise ValueError(f"ODMVNet expects {self.view_channels} channels per view, got {sc}")
+        full = None
         if self.flags["rve"]:
-            f = self.stem(x)
+            f, full = self.stem(x)
         else:  # B x C x S x H x W volume of the views' channels
             vol = x.reshape(b, sc // self.view_channels, self.view_channels, h, wd)
             f = self.stem(vol.transpose(1, 2))
@@ -194,7 +226,7 @@ class ODMVNet(nn.Module):
             skips.append(f)
         f = self._run(self.bottleneck, self.pool(f))
         masks: list[torch.Tensor | None] = [None] * LEVELS
-        outs = {}
+        stages, stage_masks = {}, {}  # decoder output and OCD mask per level
         for i in reversed(range(LEVELS)):
             skip = skips[i]
             if self.ocd is not None:
@@ -203,12 +235,23 @@ class ODMVNet(nn.Module):
             if self.gates is not None:
                 skip = self.gates[i](skip, f)
             f = self._run(self.decoder[i], torch.cat([self.up[i](f), skip], 1))
-            if i < 3:
-                fused = self.fusion[i](f, masks[i]) if self.fusion is not None else f.mean(2)
-                outs[i] = self.heads[i](fused)
-        result = {"depth": outs[0], "aux": [outs[1], outs[2]]}
+            stages[i], stage_masks[i] = f, masks[i]
+        # the stages that Main, Aux1 and Aux2 read
+        if full is None:
+            heads_in = [(stages[i], stage_masks[i]) for i in range(3)]
+        else:
+            f = self._run(self.decoder_full, torch.cat([self.up_full(f), full], 1))
+            mask = masks[0]
+            if mask is not None:  # the level-0 mask, repeated to full resolution
+                mask = F.interpolate(mask, scale_factor=(1, 2, 2), mode="nearest")
+            heads_in = [(f, mask), (stages[0], masks[0]), (stages[1], masks[1])]
+        outs = []
+        for k, (feat, mask) in enumerate(heads_in):
+            fused = self.fusion[k](feat, mask) if self.fusion is not None else feat.mean(2)
+            outs.append(self.heads[k](fused))
+        result = {"depth": outs[0], "aux": outs[1:]}
         if self.ssvr is not None:
-            result["views"] = torch.tanh(self.ssvr(f)[:, 0])
+            result["views"] = torch.tanh(self.ssvr(heads_in[0][0])[:, 0])
         if self.ocd is not None:
             result["occlusion"] = masks
         return result
