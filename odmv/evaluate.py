@@ -8,6 +8,7 @@ scanline. The data settings saved in the checkpoint are used unless ``data`` is 
 
 from __future__ import annotations
 
+import csv
 import json
 from pathlib import Path
 
@@ -20,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.metrics import DepthErrors
-from odmv.module import load_module, net_input
+from odmv.module import PREDICTIONS, SCENES_CSV, load_module, net_input
 from odmv.simulate import CONF_DIR
 
 matplotlib.use("Agg")
@@ -35,6 +36,23 @@ def constant_predictor_errors(dm, value_mm: float) -> dict[str, float]:
             torch.full_like(batch["depth_mm"], value_mm), batch["depth_mm"], batch["valid"]
         )
     return {k: float(v) for k, v in metric.compute().items()}
+
+
+def family_errors(out_dir: Path, const_mm: float) -> dict[str, float]:
+    """MAE in mm per scene family over the test pixels, of the model
+    (``family/<family>/mae_mm``) and of the constant predictor
+    (``family/<family>/constant_mae_mm``), from the per-scene outputs the test wrote."""
+    with (out_dir / SCENES_CSV).open() as fh:
+        family = {r["scene"]: r["family"] or "unlabelled" for r in csv.DictReader(fh)}
+    pred = np.load(out_dir / PREDICTIONS)
+    out = {}
+    for fam in sorted(set(family.values())):
+        pick = np.array([family[str(s)] == fam for s in pred["scene_id"]])
+        gt, p = pred["depth_mm"][pick].astype(np.float64), pred["pred_mm"][pick]
+        valid = np.isfinite(gt)
+        out[f"family/{fam}/mae_mm"] = float(np.abs(p[valid] - gt[valid]).mean())
+        out[f"family/{fam}/constant_mae_mm"] = float(np.abs(const_mm - gt[valid]).mean())
+    return out
 
 
 def mean_train_depth(dm) -> float:
@@ -124,6 +142,7 @@ def evaluate(cfg: DictConfig) -> dict:
     const = mean_train_depth(dm)
     metrics.update({f"constant/{k}": v for k, v in constant_predictor_errors(dm, const).items()})
     metrics["constant/depth_mm"] = const
+    metrics.update(family_errors(out_dir, const))
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
     module.eval()
@@ -145,13 +164,23 @@ def evaluate(cfg: DictConfig) -> dict:
 
 
 def report(metrics: dict) -> str:
-    """Two lines: the model and the constant-depth predictor, in mm."""
+    """The model and the constant-depth predictor in mm, overall and per scene family."""
+    families = [
+        k.split("/")[1] for k in metrics if k.startswith("family/") and k.endswith("/mae_mm")
+    ]
+    lines = []
+    for fam in families:
+        model, const = metrics[f"family/{fam}/mae_mm"], metrics[f"family/{fam}/constant_mae_mm"]
+        lines.append(
+            f"  {fam:<10}: MAE {model:.4f} mm, constant {const:.4f} mm ({const / model:.1f}x)"
+        )
+    tail = "\n".join(["per scene family:", *lines]) if lines else ""
     return (
         f"model     : MAE {metrics['test/mae_mm']:.4f} mm, RMSE {metrics['test/rmse_mm']:.4f} mm"
         f" (shadowed pixels: MAE {metrics['test/mae_mm_shadowed']:.4f} mm)\n"
         f"constant  : MAE {metrics['constant/mae_mm']:.4f} mm, "
         f"RMSE {metrics['constant/rmse_mm']:.4f} mm (predicting "
-        f"{metrics['constant/depth_mm']:.3f} mm everywhere)"
+        f"{metrics['constant/depth_mm']:.3f} mm everywhere)" + ("\n" + tail if tail else "")
     )
 
 

@@ -10,7 +10,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from odmv.evaluate import evaluate
+from odmv.evaluate import evaluate, report
 from odmv.io.exr import read_channel, write_exr
 from odmv.predict import predict
 from odmv.simulate import CONF_DIR
@@ -104,6 +104,21 @@ def test_evaluate_writes_metrics_and_figures(trained, tmp_path):
     em = evaluate(cfg)
     assert em["test/mae_mm"] == pytest.approx(metrics["test/mae_mm"], rel=1e-5)
     assert em["constant/mae_mm"] > 0 and 140 < em["constant/depth_mm"] < 150
+    # per scene family: the test scenes' families, pooling back to the overall figures
+    with (tmp_path / "test_scenes.csv").open() as fh:
+        families = {r["family"] for r in csv.DictReader(fh)}
+    pred = np.load(tmp_path / "test_predictions.npz")
+    assert {k.split("/")[1] for k in em if k.startswith("family/")} == families
+    n = {f: 0 for f in families}
+    with (tmp_path / "test_scenes.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    for r, depth in zip(rows, pred["depth_mm"], strict=True):
+        n[r["family"]] += np.isfinite(depth).sum()
+    pooled = sum(n[f] * em[f"family/{f}/mae_mm"] for f in families) / sum(n.values())
+    assert pooled == pytest.approx(em["test/mae_mm"], rel=1e-4)
+    const = sum(n[f] * em[f"family/{f}/constant_mae_mm"] for f in families) / sum(n.values())
+    assert const == pytest.approx(em["constant/mae_mm"], rel=1e-4)
+    assert "per scene family:" in report(em)
     pngs = list((tmp_path / "figures").glob("*.png"))
     assert len(pngs) == 1 and pngs[0].read_bytes()[:4] == b"\x89PNG"
 
