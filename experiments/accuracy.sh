@@ -35,6 +35,13 @@ round2() {
   run unet-s1-height contender=unet_s1 data.depth_target=height
   run unet-s1-steps contender=unet_s1 "${steps[@]}"
   run unet-s1-reference-steps contender=unet_s1 reference=true "${steps[@]}"
-  run unet-s1-reference-height contender=unet_s1 reference=true data.depth_target=height
 }
-"${@:-round2}"
+round3() {
+  # every net above is still improving when its 12 epochs end (train L1 about the val MAE):
+  # the budget, not the data, limits. Longer schedules, and ODMV-Net's backbone at half
+  # resolution (rve_stride=2: about 3.4x less time per step), which buys epochs or width.
+  local e48=(trainer.max_epochs=48 scheduler.T_0=48)
+  SEEDS=0 run unet-s1-reference-e48 contender=unet_s1 reference=true "${e48[@]}"
+  run s4-gn-ref-stride2 norm=group reference=true model.net.rve_stride=2
+}
+"${@:-round3}"

@@ -2,7 +2,13 @@ import pytest
 import torch
 
 from odmv.models import ABLATION_ROWS, ODMVNet, count_parameters
-from odmv.models.blocks import ASPP3d, AttentionGate3d, OcclusionDetector, ResBlock3d
+from odmv.models.blocks import (
+    ASPP3d,
+    AttentionGate3d,
+    OcclusionAwareFusion,
+    OcclusionDetector,
+    ResBlock3d,
+)
 from odmv.models.odmvnet import ResidualViewEncoder
 
 PAPER_PARAMETERS = 112_560_408
@@ -131,3 +137,22 @@ def test_strided_view_encoder_keeps_the_output_scales():
         net(torch.rand(1, 3, 48, 48))
     with pytest.raises(ValueError, match="needs the Residual View Encoder"):
         _tiny(ablation="aspp", rve_stride=2)
+
+
+def test_fusion_gives_a_view_the_occlusion_detector_rejects_almost_no_weight():
+    torch.manual_seed(0)
+    fusion = OcclusionAwareFusion(8).eval()
+    x = torch.rand(2, 8, 4, 16, 16)
+    x[:, :, 2] = 50.0  # an outlier view: it would dominate a plain blend
+    mask = torch.ones(2, 1, 4, 16, 16)
+    mask[:, :, 2] = 1e-6  # the OCD finds view 2 unlit
+    with torch.no_grad():
+        fused = fusion(x, mask)
+        without = fusion(x.clone(), None)
+    # the rejected view's features do not reach the output ...
+    x_other = x.clone()
+    x_other[:, :, 2] = -50.0
+    with torch.no_grad():
+        assert torch.allclose(fusion(x_other, mask), fused, atol=1e-2)
+        # ... while without the mask they do
+        assert not torch.allclose(fusion(x_other, None), without, atol=1e-2)

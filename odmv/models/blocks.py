@@ -151,9 +151,12 @@ class OcclusionAwareFusion(nn.Module):
 
     Channel-view attention (a shared MLP on average- and max-pooled spatial statistics, one
     weight per channel and view) and spatial attention (a 3D conv on channel-pooled maps, one
-    logit per view and pixel) re-weight the features; the occlusion mask, when given, scales
-    the view weights, so views the OCD finds unlit contribute less. Views are then combined by
-    a softmax over S of the spatial logits (plus log-mask), i.e. a per-pixel convex blend.
+    logit per view and pixel) re-weight the features. Views are then combined by a softmax
+    over S of the spatial logits, i.e. a per-pixel convex blend. The occlusion mask, when
+    given, suppresses what the OCD finds occluded twice: it scales the features before any
+    attention (the spatial attention's kernel spans neighbouring views, so an unmasked
+    occluded view would still steer its neighbours' weights) and adds its log to the logits
+    (so the blend gives that view almost no weight).
     """
 
     def __init__(self, ch: int, reduction: int = 8):
@@ -165,6 +168,8 @@ class OcclusionAwareFusion(nn.Module):
         self.spatial = nn.Conv3d(2, 1, (3, 7, 7), padding=(1, 3, 3))
 
     def forward(self, x, mask=None):
+        if mask is not None:
+            x = x * mask
         # channel-view attention: B x C x S weights
         avg = x.mean((3, 4)).transpose(1, 2)  # B x S x C
         mx = x.amax((3, 4)).transpose(1, 2)
