@@ -156,3 +156,18 @@ def test_fusion_gives_a_view_the_occlusion_detector_rejects_almost_no_weight():
         assert torch.allclose(fusion(x_other, mask), fused, atol=1e-2)
         # ... while without the mask they do
         assert not torch.allclose(fusion(x_other, None), without, atol=1e-2)
+
+
+def test_circular_view_padding_makes_the_net_equivariant_to_rotating_the_views():
+    x = torch.rand(1, 4, 32, 32) * 2 - 1
+    rolled = x.roll(1, dims=1)  # right, down, left, up -> up, right, down, left
+    for padding, equivariant in (("circular", True), ("zeros", False)):
+        net = _tiny(view_padding=padding, norm="group").eval()
+        with torch.no_grad():
+            a, b = net(x), net(rolled)
+        same = torch.allclose(a["depth"], b["depth"], atol=1e-5)
+        assert same == equivariant, padding
+        if equivariant:
+            torch.testing.assert_close(b["views"], a["views"].roll(1, dims=1), atol=1e-5, rtol=0)
+    with pytest.raises(ValueError, match="view_padding"):
+        _tiny(view_padding="reflect")

@@ -50,6 +50,48 @@ def set_norm(net: nn.Module, norm: str) -> nn.Module:
     return net
 
 
+VIEW_PADDINGS = ("zeros", "circular")
+
+
+class ViewCircularConv3d(nn.Conv3d):
+    """A Conv3d whose view axis (the first of D x H x W) wraps around: the four views right,
+    down, left, up form a ring in which each view's neighbours are the two beside it, which
+    zero padding would cut between up and right. Space keeps zero padding."""
+
+    def forward(self, x):
+        p = self.padding[0]
+        x = F.pad(x, (0, 0, 0, 0, p, p), mode="circular")
+        pad = (0, *self.padding[1:])
+        return F.conv3d(x, self.weight, self.bias, self.stride, pad, self.dilation, self.groups)
+
+
+def set_view_padding(net: nn.Module, mode: str) -> nn.Module:
+    """``"circular"``: every 3D convolution that pads the view axis wraps it instead
+    (:class:`ViewCircularConv3d`, same parameters); ``"zeros"`` keeps zero padding (the
+    paper's nets, as far as it says)."""
+    if mode not in VIEW_PADDINGS:
+        raise ValueError(f"view_padding {mode!r} unknown; choose from {list(VIEW_PADDINGS)}")
+    if mode == "zeros":
+        return net
+    for name, child in net.named_children():
+        if type(child) is nn.Conv3d and child.padding[0] > 0:
+            conv = ViewCircularConv3d(
+                child.in_channels,
+                child.out_channels,
+                child.kernel_size,
+                child.stride,
+                child.padding,
+                child.dilation,
+                child.groups,
+                child.bias is not None,
+            )
+            conv.load_state_dict(child.state_dict())
+            setattr(net, name, conv)
+        else:
+            set_view_padding(child, mode)
+    return net
+
+
 class Float32Conv2d(nn.Conv2d):
     """A regression output layer that stays float32 under autocast: in bf16 a normalized depth
     near 1 has steps of 2**-7, i.e. 0.08 mm at the default 10 mm half range."""

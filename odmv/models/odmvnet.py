@@ -46,6 +46,7 @@ from odmv.models.blocks import (
     ResBlock3d,
     conv_bn_act,
     set_norm,
+    set_view_padding,
     stage3d,
 )
 
@@ -114,7 +115,8 @@ class ODMVNet(nn.Module):
     """See the module docstring. ``ablation`` names a Table I row (:data:`ABLATION_ROWS`);
     each switch left None follows that row: ``residual`` and ``attention_gates`` ("+RB&AG"),
     ``aspp``, ``rve``, ``ocd_oaf``, ``ssvr`` ("+Multi-task"). ``norm``: "batch" (the paper) or
-    "group" (see :func:`odmv.models.blocks.set_norm`)."""
+    "group" (see :func:`odmv.models.blocks.set_norm`). ``view_padding``: "zeros" or "circular"
+    (the view axis as a ring, :func:`odmv.models.blocks.set_view_padding`)."""
 
     def __init__(
         self,
@@ -132,6 +134,7 @@ class ODMVNet(nn.Module):
         norm: str = "batch",
         view_channels: int = 1,
         rve_stride: int = 1,
+        view_padding: str = "zeros",
     ):
         super().__init__()
         if ablation not in ABLATION_ROWS:
@@ -198,6 +201,7 @@ class ODMVNet(nn.Module):
             else None
         )
         set_norm(self, norm)
+        set_view_padding(self, view_padding)
 
     def _run(self, module, *args):
         if self.checkpointing and self.training and torch.is_grad_enabled():
