@@ -39,9 +39,15 @@ round2() {
 round3() {
   # every net above is still improving when its 12 epochs end (train L1 about the val MAE):
   # the budget, not the data, limits. Longer schedules, and ODMV-Net's backbone at half
-  # resolution (rve_stride=2: about 3.4x less time per step), which buys epochs or width.
+  # resolution (stem_stride=2: about 3.4x less time per step), which buys epochs or width.
   local e48=(trainer.max_epochs=48 scheduler.T_0=48)
   SEEDS=0 run unet-s1-reference-e48 contender=unet_s1 reference=true "${e48[@]}"
-  run s4-gn-ref-stride2 norm=group reference=true model.net.rve_stride=2
+  local s4=(norm=group reference=true model.net.stem_stride=2)
+  run s4-gn-ref-stride2 "${s4[@]}"
+  # ODMV-Net starts 8.6 mm off (an output near 0 is 140 mm; the plane lies at +1): with the
+  # height target an output near 0 is the reference plane
+  run s4-gn-ref-stride2-height "${s4[@]}" data.depth_target=height
+  SEEDS=0 run s4-gn-ref-stride2-height-e48 "${s4[@]}" data.depth_target=height "${e48[@]}"
+  SEEDS=0 run unet-s1-e48 contender=unet_s1 "${e48[@]}"  # the long schedule without the reference
 }
 "${@:-round3}"

@@ -7,13 +7,14 @@ Choices where the paper (Sec. II.A, Figs. 1-2) is silent, as implemented here:
 - Residual View Encoder: the per-view 2D convolutions share weights (the paper's "hard
   parameter sharing"; the net then takes any S and any view order); two anisotropic (3,1,1)
   convolutions mix views, and a residual connection adds the stacked per-view features back.
-  With ``rve`` off, a plain 3x3x3 conv stem. ``rve_stride`` 1 (default) keeps the whole 3D
-  backbone at full resolution. ``rve_stride`` 2 (the paper's "strided convolutions"; 4x less
-  backbone compute) runs the backbone at half resolution: the RVE keeps a full-resolution
-  per-view feature (half the base width), a transposed (1,2,2) convolution brings the last
-  decoder stage back to full resolution, one 3D block merges it with that feature, and Main is
-  fused and regressed there; Aux1 and Aux2 then sit on the decoder's 1/2 and 1/4 stages, the
-  paper's scales.
+  With ``rve`` off, a plain 3x3x3 conv stem. ``stem_stride`` 1 (default) keeps the whole 3D
+  backbone at full resolution. ``stem_stride`` 2 (the paper's "strided convolutions"; 4x less
+  backbone compute) runs the backbone at half resolution: the stem keeps a full-resolution
+  feature (half the base width), a transposed (1,2,2) convolution brings the last decoder
+  stage back to full resolution, one 3D block merges it with that feature, and Main is fused
+  and regressed there; Aux1 and Aux2 then sit on the decoder's 1/2 and 1/4 stages, the
+  paper's scales. The plain stem (Table I rows without RVE) strides the same way, so the rows
+  differ in modules, not in resolution.
 - Backbone: four encoder stages (full, 1/2, 1/4, 1/8 resolution) of ``blocks`` 3D residual blocks,
   max-pooling (1,2,2) between them, a bottleneck at 1/16, and a mirrored decoder with transposed
   (1,2,2) convolutions. Without ``residual``, stages are vanilla double conv-BN-ReLU blocks.
@@ -111,6 +112,22 @@ class ResidualViewEncoder(nn.Module):
         return F.relu(f + self.cross_view(f), inplace=True), full
 
 
+class PlainStem(nn.Module):
+    """The stem without RVE: 3x3x3 convolutions over the views' channels; with stride 2 a
+    full-resolution layer first, then a (1,2,2)-strided one (see the module docstring)."""
+
+    def __init__(self, cout: int, stride: int = 1, cin: int = 1):
+        super().__init__()
+        self.full = conv_bn_act(cin, cout // 2) if stride > 1 else None
+        first = cout // 2 if stride > 1 else cin
+        self.conv = conv_bn_act(first, cout, stride=(1, stride, stride))
+
+    def forward(self, vol):
+        """B x cin x S x H x W -> (volume, full-resolution volume or None)."""
+        full = self.full(vol) if self.full is not None else None
+        return self.conv(vol if full is None else full), full
+
+
 class ODMVNet(nn.Module):
     """See the module docstring. ``ablation`` names a Table I row (:data:`ABLATION_ROWS`);
     each switch left None follows that row: ``residual`` and ``attention_gates`` ("+RB&AG"),
@@ -133,7 +150,7 @@ class ODMVNet(nn.Module):
         activation_checkpointing: bool = False,
         norm: str = "batch",
         view_channels: int = 1,
-        rve_stride: int = 1,
+        stem_stride: int = 1,
         view_padding: str = "zeros",
     ):
         super().__init__()
@@ -151,19 +168,17 @@ class ODMVNet(nn.Module):
             k: ABLATION_ROWS[ablation][k] if v is None else bool(v) for k, v in given.items()
         }
         residual, attention_gates, aspp, rve, ocd_oaf, ssvr = (self.flags[k] for k in SWITCHES)
-        if rve_stride not in (1, 2):
-            raise ValueError(f"rve_stride {rve_stride} unsupported; choose 1 or 2")
-        if rve_stride > 1 and not rve:
-            raise ValueError("rve_stride 2 needs the Residual View Encoder (rve on)")
-        self.stride = rve_stride
+        if stem_stride not in (1, 2):
+            raise ValueError(f"stem_stride {stem_stride} unsupported; choose 1 or 2")
+        self.stride = stem_stride
         w = [base_width * 2**i for i in range(LEVELS + 1)]
         self.widths = w
         self.checkpointing = activation_checkpointing
         self.view_channels = view_channels
         self.stem = (
-            ResidualViewEncoder(w[0], rve_stride, view_channels)
+            ResidualViewEncoder(w[0], stem_stride, view_channels)
             if rve
-            else conv_bn_act(view_channels, w[0])
+            else PlainStem(w[0], stem_stride, view_channels)
         )
         self.encoder = nn.ModuleList(
             stage3d(w[max(i - 1, 0)], w[i], blocks, residual) for i in range(LEVELS)
@@ -186,11 +201,11 @@ class ODMVNet(nn.Module):
         )
         self.ocd = nn.ModuleList(OcclusionDetector(w[i]) for i in levels) if ocd_oaf else None
         # stride 2: the full-resolution stage after the decoder (see the module docstring)
-        if rve_stride > 1:
+        if stem_stride > 1:
             self.up_full = nn.ConvTranspose3d(w[0], w[0] // 2, (1, 2, 2), stride=(1, 2, 2))
             self.decoder_full = conv_bn_act(w[0], w[0] // 2)
         # output heads Main, Aux1, Aux2: the channels of the stages they read
-        head_ch = [w[0], w[1], w[2]] if rve_stride == 1 else [w[0] // 2, w[0], w[1]]
+        head_ch = [w[0], w[1], w[2]] if stem_stride == 1 else [w[0] // 2, w[0], w[1]]
         self.fusion = nn.ModuleList(OcclusionAwareFusion(c) for c in head_ch) if ocd_oaf else None
         self.heads = nn.ModuleList(RegressionHead(c) for c in head_ch)
         self.ssvr = (
@@ -218,12 +233,11 @@ class ODMVNet(nn.Module):
             raise ValueError(f"ODMVNet needs H and W divisible by {m}, got {h}x{wd}")
         if sc % self.view_channels:
             raise ValueError(f"ODMVNet expects {self.view_channels} channels per view, got {sc}")
-        full = None
         if self.flags["rve"]:
             f, full = self.stem(x)
         else:  # B x C x S x H x W volume of the views' channels
             vol = x.reshape(b, sc // self.view_channels, self.view_channels, h, wd)
-            f = self.stem(vol.transpose(1, 2))
+            f, full = self.stem(vol.transpose(1, 2))
         skips = []
         for i, stage in enumerate(self.encoder):
             f = self._run(stage, f if i == 0 else self.pool(f))
