@@ -7,7 +7,7 @@ import json
 
 from omegaconf import ListConfig, OmegaConf
 
-from odmv.data.reference import CHANNELS
+from odmv.data.reference import view_channels as reference_channels
 from odmv.rig import VIEW_SETS, check_views
 
 
@@ -38,7 +38,7 @@ def n_views(views) -> int:
 
 def view_channels(reference) -> int:
     """Network input channels per view (odmv.data.reference)."""
-    return CHANNELS[bool(reference)]
+    return reference_channels(reference)
 
 
 def in_channels(views, reference) -> int:

@@ -19,7 +19,7 @@ from omegaconf import DictConfig
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.data.dataset import DataError, SampleSpec, load_scene
-from odmv.data.reference import network_input, reference_phase
+from odmv.data.reference import network_input, reference_mode, reference_phase
 from odmv.io.exr import ExrError, read_exr, write_exr
 from odmv.io.manifest import MANIFEST, load_manifest
 from odmv.module import load_module
@@ -97,9 +97,10 @@ def predict(cfg: DictConfig) -> dict[str, Path]:
     fringes, rig = read_inputs(Path(cfg.input), views, size, cfg.manifest)
     x = module.norm.fringes(torch.from_numpy(np.ascontiguousarray(fringes)))
     spec = module.hparams.get("input_spec") or {}
-    if spec.get("reference"):  # the reference-plane phase from the rig's calibration
+    mode = reference_mode(spec.get("reference"))
+    if mode:  # the reference-plane phase from the rig's calibration
         ref = reference_phase(rig, views, *size, spec["period_px"], spec["step"], spec["n_steps"])
-        x = network_input(x, torch.from_numpy(ref))
+        x = network_input(x, torch.from_numpy(ref), mode)
     x = x[None]
     with torch.no_grad():
         depth_mm = module.depth_mm(module(x))[0, 0].numpy().astype(np.float32)

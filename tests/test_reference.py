@@ -8,8 +8,9 @@ from helpers import RIG, render
 from hydra import compose, initialize_config_dir
 
 from odmv.data import FPPDataModule
-from odmv.data.reference import network_input, reference_phase
+from odmv.data.reference import network_input, reference_mode, reference_phase
 from odmv.io.exr import read_channel
+from odmv.module import load_module
 from odmv.predict import predict
 from odmv.rig import VIEW_NAMES
 from odmv.simulate import CONF_DIR
@@ -39,23 +40,46 @@ def test_network_input_keeps_each_views_channels_together():
     assert (x[:, 1::3] == -1).all() and (x[:, 2::3] == -1).all()
 
 
-def test_samples_carry_the_input_with_reference(tiny_dataset, tmp_path):
+@pytest.mark.parametrize("mode", [True, "demod"])
+def test_samples_carry_the_input_with_reference(tiny_dataset, tmp_path, mode):
     dm = FPPDataModule(
-        str(tiny_dataset), resolution=32, reference=True, cache=False, progress=False
+        str(tiny_dataset), resolution=32, reference=mode, cache=False, progress=False
     )
     dm.prepare_data()
     dm.setup()
     s = dm.datasets["test"][0]
     assert s["inputs"].shape == (12, 32, 32)
     torch.testing.assert_close(s["inputs"][0::3], s["fringes"])
+    ref = dm.datasets["test"].reference  # S x 2 x H x W: sin, cos
+    carrier = s["fringes"] if mode == "demod" else 1.0
+    torch.testing.assert_close(s["inputs"][1::3], carrier * ref[:, 0])
+    torch.testing.assert_close(s["inputs"][2::3], carrier * ref[:, 1])
 
 
-@pytest.mark.parametrize("model", ["odmvnet", "unet", "mtlnet"])
-def test_training_and_prediction_with_the_reference(tiny_dataset, tmp_path, model):
+def test_demodulation_leaves_the_phase_difference_after_a_local_average():
+    # a flat surface lifted by dphi: I = a + b cos(phi_ref + dphi); one period's average of
+    # I * (sin, cos)(phi_ref) is (b/2) (-sin dphi, cos dphi)
+    period, a, b, dphi = 16, 0.1, 0.7, 0.9
+    phi_ref = 2 * np.pi * np.arange(period) / period
+    image = torch.tensor(a + b * np.cos(phi_ref + dphi), dtype=torch.float32)[None, None, :]
+    ref = torch.tensor(np.stack([np.sin(phi_ref), np.cos(phi_ref)]), dtype=torch.float32)
+    x = network_input(image, ref[None, :, None, :], "demod")  # 1 view, 1 x period
+    sin_avg, cos_avg = x[1].mean(), x[2].mean()
+    assert float(sin_avg) == pytest.approx(-b / 2 * np.sin(dphi), abs=1e-6)
+    assert float(cos_avg) == pytest.approx(b / 2 * np.cos(dphi), abs=1e-6)
+    with pytest.raises(ValueError, match="reference: 'mixed' unknown"):
+        reference_mode("mixed")
+
+
+@pytest.mark.parametrize(
+    ("model", "mode"),
+    [("odmvnet", "true"), ("unet", "true"), ("mtlnet", "true"), ("unet", "demod")],
+)
+def test_training_and_prediction_with_the_reference(tiny_dataset, tmp_path, model, mode):
     overrides = [
         f"model={model}",
         "views=2",
-        "reference=true",
+        f"reference={mode}",
         "data=exr",
         f"root={tiny_dataset}",
         "data.resolution=32",
@@ -87,3 +111,13 @@ def test_training_and_prediction_with_the_reference(tiny_dataset, tmp_path, mode
         )
         depth = read_channel(predict(cfg)["depth"], "Z")
     assert depth.shape == (32, 32) and np.isfinite(depth).all()
+    # predict rebuilds the net's input from the images and the rig: the test's own depth
+    module = load_module(metrics["best_checkpoint"]).eval()
+    data_cfg = {k: v for k, v in module.hparams.data_cfg.items() if k != "_target_"}
+    dm = FPPDataModule(**{**data_cfg, "cache": False, "progress": False})
+    dm.setup()
+    ds = next(d for d in dm.datasets.values() if "000004" in d.ids)
+    sample = ds[ds.ids.index("000004")]
+    with torch.no_grad():
+        expected = module.depth_mm(module(sample["inputs"][None]))[0, 0].numpy()
+    np.testing.assert_allclose(depth, expected, atol=1e-3)

@@ -62,7 +62,7 @@ class FPPDataModule(L.LightningDataModule):
         intensity_max: float | None = None,
         simulate: dict | None = None,
         render: bool = True,
-        reference: bool = False,
+        reference: bool | str = False,
         train_steps: str | list[int] | None = None,
         progress: bool = True,
     ):

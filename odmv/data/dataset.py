@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 
 from odmv.data.normalize import Normalization
-from odmv.data.reference import network_input, reference_phase
+from odmv.data.reference import network_input, reference_mode, reference_phase
 from odmv.data.subsets import footprint_from_depth, subset_masks
 from odmv.io.exr import ExrError, read_exr
 from odmv.io.manifest import (
@@ -56,7 +56,7 @@ class SampleSpec:
     with_phase: bool = False  # also (sin, cos) of the input image's ground-truth phase
     period_px: float = 0.0  # fringe period of the input image (projector px)
     n_steps: int = 1  # phase steps of its sequence
-    reference: bool = False  # also the reference-plane phase as input (odmv.data.reference)
+    reference: str | None = None  # the reference-plane phase as input: phase | demod
 
     def key(self) -> dict:
         return asdict(self)
@@ -70,7 +70,7 @@ def check_spec(
     step: int | None,
     with_stacks: bool = False,
     with_phase: bool = False,
-    reference: bool = False,
+    reference=None,
 ) -> SampleSpec:
     """Resolve and check sample settings against a manifest (one-line DataError on a problem)."""
     try:
@@ -96,6 +96,10 @@ def check_spec(
         m.fringe.train_step,
     ):
         raise DataError(f"data.fringe_frequency/step: {m.root} holds only the training image")
+    try:
+        reference = reference_mode(reference)
+    except ValueError as e:
+        raise DataError(str(e)) from None
     if with_stacks and m.images != "full":
         raise DataError(f"data.with_stacks: {m.root} holds no full sequences (images=training)")
     return SampleSpec(
@@ -292,7 +296,7 @@ class FringeDataset(torch.utils.data.Dataset):
             "family": self.families.get(self.ids[i], ""),
         }
         if self.reference is not None:
-            sample["inputs"] = network_input(sample["fringes"], self.reference)
+            sample["inputs"] = network_input(sample["fringes"], self.reference, self.spec.reference)
         if self.spec.with_phase:
             sample["phase_target"] = torch.from_numpy(np.array(raw["phase_target"], np.float32))
         if self.spec.with_stacks:

@@ -3,9 +3,16 @@
 A convolution sees the local phase of a fringe image but not which projector column a pixel
 looks at, so a wide flat region has no absolute height except through its edges. A real rig
 knows, from its calibration (or one capture of the flat reference plane), the phase each pixel
-sees on the reference plane; the height of a surface point is encoded in the difference. With
-``reference`` on, each view's network input is three channels: the normalized fringe image and
-sin / cos of that reference phase (0 outside the projector's footprint on the plane).
+sees on the reference plane; the height of a surface point is encoded in the difference.
+``reference`` (:func:`reference_mode`) gives each view three input channels:
+
+- ``phase`` (or ``true``): the normalized fringe image I and sin / cos of the reference phase;
+- ``demod``: I, I sin(phi_ref) and I cos(phi_ref), the fringe mixed down by the reference
+  carrier as Fourier-transform profilometry does: with I = a + b cos(phi_ref + dphi), a local
+  average over one period leaves (b/2) (-sin dphi, cos dphi), so the phase difference, i.e. the
+  height, is a linear filter away instead of a product the net must learn to form.
+
+Both are 0 outside the projector's footprint on the plane.
 """
 
 from __future__ import annotations
@@ -15,8 +22,23 @@ import torch
 
 from odmv.rig import Rig
 
-#: Network input channels per view: the fringe, and with the reference its sin and cos.
-CHANNELS = {False: 1, True: 3}
+MODES = ("phase", "demod")
+
+
+def reference_mode(value) -> str | None:
+    """The reference setting as None (off), "phase" or "demod"; ``true`` means "phase"."""
+    if value is None or value is False:
+        return None
+    if value is True:
+        return "phase"
+    if value in MODES:
+        return value
+    raise ValueError(f"reference: {value!r} unknown; choose false, true, phase or demod")
+
+
+def view_channels(value) -> int:
+    """Network input channels per view: the fringe alone, or three with the reference."""
+    return 1 if reference_mode(value) is None else 3
 
 
 def reference_phase(
@@ -39,11 +61,17 @@ def reference_phase(
     return out
 
 
-def network_input(fringes: torch.Tensor, reference: torch.Tensor | None) -> torch.Tensor:
+def network_input(
+    fringes: torch.Tensor, reference: torch.Tensor | None, mode: str = "phase"
+) -> torch.Tensor:
     """Normalized fringes (..., S, H, W) and reference (S, 2, H, W) or None -> the net's input
-    (..., S * C, H, W), each view's channels together (fringe, sin, cos)."""
+    (..., S * C, H, W), each view's channels together: (I, sin, cos) in ``phase`` mode,
+    (I, I sin, I cos) in ``demod`` mode."""
     if reference is None:
         return fringes
     ref = reference.to(fringes).expand(*fringes.shape[:-3], *reference.shape)
-    stacked = torch.cat([fringes.unsqueeze(-3), ref], -3)  # ..., S, 3, H, W
+    image = fringes.unsqueeze(-3)
+    if mode == "demod":
+        ref = image * ref
+    stacked = torch.cat([image, ref], -3)  # ..., S, 3, H, W
     return stacked.flatten(-4, -3)
