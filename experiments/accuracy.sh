@@ -42,12 +42,27 @@ round3() {
   # resolution (stem_stride=2: about 3.4x less time per step), which buys epochs or width.
   local e48=(trainer.max_epochs=48 scheduler.T_0=48)
   SEEDS=0 run unet-s1-reference-e48 contender=unet_s1 reference=true "${e48[@]}"
-  local s4=(norm=group reference=true model.net.stem_stride=2)
+  local s4=(norm=group reference=true stem_stride=2)
   run s4-gn-ref-stride2 "${s4[@]}"
   # ODMV-Net starts 8.6 mm off (an output near 0 is 140 mm; the plane lies at +1): with the
   # height target an output near 0 is the reference plane
   run s4-gn-ref-stride2-height "${s4[@]}" data.depth_target=height
   SEEDS=0 run s4-gn-ref-stride2-height-e48 "${s4[@]}" data.depth_target=height "${e48[@]}"
-  SEEDS=0 run unet-s1-e48 contender=unet_s1 "${e48[@]}"  # the long schedule without the reference
 }
-"${@:-round3}"
+round4() {
+  # ODMV-Net underfits (train L1 = val MAE) where UNet reaches 0.18 mm: the OCD masks (about
+  # 0.5, unsupervised) scale every skip down; supervised with the lit masks they pass lit
+  # pixels. With the views as a ring. 40 epochs: what a 10-minute demo affords.
+  local s4=(norm=group reference=true stem_stride=2 data.depth_target=height)
+  local e40=(trainer.max_epochs=40 scheduler.T_0=40)
+  SEEDS=0 run s4-cand-e40 "${s4[@]}" loss.occlusion=0.1 model.net.view_padding=circular "${e40[@]}"
+}
+round5() {
+  # the reference as a demodulating carrier (reference=demod): screened on UNet S = 1, then
+  # ODMV-Net's candidate with it
+  run unet-s1-demod contender=unet_s1 reference=demod
+  local s4=(norm=group reference=demod stem_stride=2 data.depth_target=height)
+  SEEDS=0 run s4-gn-demod-stride2-height-e48 "${s4[@]}" trainer.max_epochs=48 scheduler.T_0=48
+  SEEDS=0 run unet-s1-e48 contender=unet_s1 trainer.max_epochs=48 scheduler.T_0=48
+}
+"${@:-round5}"

@@ -92,13 +92,33 @@ def test_sweeps_expand_to_the_tables_rows():
     assert len(jobs) == 12  # six rows x the mini protocol's two seeds
     assert ["contender=unet_s4", "seed=0"] in jobs
     cfg = _compose(["experiment=mini", "contender=unet_s4"])
-    assert cfg.model.name == "unet" and cfg.model.net.in_channels == 4
+    assert cfg.model.name == "unet" and cfg.model.net.in_channels == 4 * 3  # with the reference
     assert cfg.model.net.base_width == 32  # baselines keep their published width
     cfg = _compose(["experiment=mini"])
     assert cfg.model.net.base_width == 8 and cfg.data.resolution == 64
     paper = _compose(["experiment=paper"])
     assert (paper.data.resolution, paper.data.batch_size, paper.trainer.max_epochs) == (480, 2, 200)
     assert paper.data.simulate.scenes == 252 and paper.model.net.base_width == 46
+
+
+def test_paper_keeps_the_recipe_and_the_other_presets_take_the_improvements():
+    def switches(cfg):
+        return (cfg.norm, cfg.reference, cfg.data.depth_target, cfg.model.net.stem_stride)
+
+    assert switches(_compose(["experiment=paper"])) == ("batch", False, "depth", 1)
+    improved = ("group", True, "height", 2)
+    for preset in ("paper_plus", "mini", "quickstart"):
+        assert switches(_compose([f"experiment={preset}"])) == improved, preset
+    plus, paper = _compose(["experiment=paper_plus"]), _compose(["experiment=paper"])
+    assert (plus.data.resolution, plus.trainer.max_epochs, plus.model.net.base_width) == (
+        paper.data.resolution,
+        paper.trainer.max_epochs,
+        paper.model.net.base_width,
+    )
+    # the same data-side switches reach the baselines: a fair comparison
+    unet = _compose(["experiment=mini", "contender=unet_s1"])
+    assert (unet.norm, unet.reference, unet.data.depth_target) == improved[:3]
+    assert unet.model.net.in_channels == 3  # one view: fringe, sin, cos
 
 
 def test_plan_trains_a_configuration_shared_by_tables_once(tmp_path):
