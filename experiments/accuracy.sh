@@ -39,7 +39,7 @@ round2() {
 round3() {
   # every net above is still improving when its 12 epochs end (train L1 about the val MAE):
   # the budget, not the data, limits. Longer schedules, and ODMV-Net's backbone at half
-  # resolution (stem_stride=2: about 3.4x less time per step), which buys epochs or width.
+  # resolution (stem_stride=2: about 2x less time per epoch), which buys epochs or width.
   local e48=(trainer.max_epochs=48 scheduler.T_0=48)
   SEEDS=0 run unet-s1-reference-e48 contender=unet_s1 reference=true "${e48[@]}"
   local s4=(norm=group reference=true stem_stride=2)
@@ -59,7 +59,7 @@ round4() {
 }
 round5() {
   # the reference as a demodulating carrier (reference=demod): screened on UNet S = 1, then
-  # ODMV-Net's candidate with it
+  # ODMV-Net's 48-epoch configuration of round 3 with it
   run unet-s1-demod contender=unet_s1 reference=demod
   local s4=(norm=group reference=demod stem_stride=2 data.depth_target=height)
   SEEDS=0 run s4-gn-demod-stride2-height-e48 "${s4[@]}" trainer.max_epochs=48 scheduler.T_0=48
