@@ -20,6 +20,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
+from odmv.cli import run_app
 from odmv.metrics import DepthErrors
 from odmv.module import PREDICTIONS, SCENES_CSV, load_module, net_input
 from odmv.simulate import CONF_DIR
@@ -186,7 +187,7 @@ def report(metrics: dict) -> str:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="evaluate")
 def main(cfg: DictConfig) -> None:
-    metrics = evaluate(cfg)
+    metrics = run_app(lambda: evaluate(cfg), cfg.paths.output_dir)
     print(report(metrics))
     print(f"metrics and figures: {cfg.paths.output_dir}")
 

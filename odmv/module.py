@@ -24,6 +24,10 @@ from odmv.losses import LossWeights, composite_loss
 from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_suffix
 
 
+class NonFiniteLossError(ValueError):
+    """The training loss became NaN or infinite; training stops."""
+
+
 def build_net(net_cfg: dict) -> torch.nn.Module:
     return hydra.utils.instantiate(net_cfg, _convert_="all")
 
@@ -83,6 +87,13 @@ class FPPModule(L.LightningModule):
     def training_step(self, batch, _):
         out = self(net_input(batch))
         terms = composite_loss(out, batch, self.weights)
+        if not torch.isfinite(terms["loss"]):  # stop: every later step and metric would be NaN
+            bad = [k for k, v in terms.items() if not torch.isfinite(v)]
+            raise NonFiniteLossError(
+                f"train/loss: {float(terms['loss'])} at epoch {self.current_epoch}, step "
+                f"{self.global_step} (non-finite terms: {', '.join(bad)}; scenes "
+                f"{', '.join(batch['scene_id'])})"
+            )
         bs = batch["fringes"].shape[0]
         self.log("train/loss", terms["loss"], prog_bar=True, batch_size=bs)
         for k, v in terms.items():

@@ -18,6 +18,7 @@ import torch
 from omegaconf import DictConfig
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
+from odmv.cli import run_app
 from odmv.data.dataset import DataError, SampleSpec, load_scene
 from odmv.data.reference import network_input, reference_mode, reference_phase
 from odmv.io.exr import ExrError, read_exr, write_exr
@@ -113,7 +114,7 @@ def predict(cfg: DictConfig) -> dict[str, Path]:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="predict")
 def main(cfg: DictConfig) -> None:
-    paths = predict(cfg)
+    paths = run_app(lambda: predict(cfg), cfg.paths.output_dir)
     print(f"depth (mm): {paths['depth']}\npoint cloud: {paths['points']}")
 
 

@@ -16,6 +16,7 @@ import lightning as L
 from omegaconf import DictConfig, OmegaConf
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
+from odmv.cli import run_app
 from odmv.module import FPPModule, write_json
 from odmv.simulate import CONF_DIR
 from odmv.sweep import append_row
@@ -51,7 +52,7 @@ def build(cfg: DictConfig):
 
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit, then test the best checkpoint; returns the test metrics (mm)."""
-    L.seed_everything(cfg.seed, workers=True)
+    L.seed_everything(cfg.seed, workers=True, verbose=False)
     out_dir = Path(cfg.paths.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     dm, module, trainer = build(cfg)
@@ -96,8 +97,8 @@ def _task_overrides() -> list[str]:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="train")
 def main(cfg: DictConfig) -> dict[str, float]:
-    metrics = train(cfg)
     out = Path(cfg.paths.output_dir)
+    metrics = run_app(lambda: train(cfg), out)
     print(f"run folder: {out}\n  TensorBoard: tensorboard --logdir {out / 'tensorboard'}")
     if metrics:
         print(

@@ -67,6 +67,8 @@ class FPPDataModule(L.LightningDataModule):
         progress: bool = True,
     ):
         super().__init__()
+        if root is None:
+            raise DataError("data.root: no dataset folder given (data=exr root=PATH)")
         self.root = Path(root)
         self.views = tuple(views)
         self.resolution = resolution

@@ -167,10 +167,14 @@ def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]
             raise DataError(f"{path}: shape {a.shape} differs from the manifest's {shape}")
         return a.astype(np.float32, copy=False)
 
+    def fringe(path: Path) -> np.ndarray:
+        a = image(path, FRINGE_CHANNEL)
+        if not np.isfinite(a).all():  # would train to NaN on every metric
+            raise DataError(f"{path}: {int((~np.isfinite(a)).sum())} non-finite intensity values")
+        return a
+
     fd = d / FRINGE_DIR
-    fringes = np.stack(
-        [image(fd / fringe_name(v, spec.frequency, spec.step), FRINGE_CHANNEL) for v in spec.views]
-    )
+    fringes = np.stack([fringe(fd / fringe_name(v, spec.frequency, spec.step)) for v in spec.views])
     depth = image(d / DEPTH_FILE, DEPTH_CHANNEL)
     if not np.isfinite(depth).all():
         raise DataError(
@@ -210,11 +214,7 @@ def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]
         stack = np.stack(
             [
                 np.stack(
-                    [
-                        image(fd / fringe_name(v, f, s), FRINGE_CHANNEL)
-                        for f in range(n_f)
-                        for s in range(n_s)
-                    ]
+                    [fringe(fd / fringe_name(v, f, s)) for f in range(n_f) for s in range(n_s)]
                 )
                 for v in spec.views
             ]

@@ -1,0 +1,65 @@
+"""How every app reports the project's own errors: one line, ``error: <file or key>: <problem>``,
+exit status 2, and no empty run folder left behind. ``HYDRA_FULL_ERROR=1`` shows the traceback.
+
+The project's errors (DataError, ManifestError, ExrError, SimulationError, ...) are
+ValueErrors that name the file or config key at fault; one raised by a config resolver or a
+constructor arrives wrapped by OmegaConf or Hydra and is reported by its own message.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import TypeVar
+
+from hydra.errors import InstantiationException
+from omegaconf.errors import OmegaConfBaseException
+
+T = TypeVar("T")
+
+#: What Hydra and the loggers write into a run folder before the first checkpoint; a folder
+#: holding only these belongs to a run that failed before it produced anything.
+_STARTUP_FILES = {".hydra", "train.log", "evaluate.log", "predict.log", "csv", "tensorboard"}
+
+
+_WRAPPERS = (OmegaConfBaseException, InstantiationException)
+
+
+def _one_line(exc: BaseException) -> str:
+    while isinstance(exc, _WRAPPERS) and exc.__cause__ is not None:
+        exc = exc.__cause__  # the resolver's or constructor's own message, not the wrapper
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
+def quiet_lightning() -> None:
+    """Lightning's info chatter (tips to install its cloud products, "GPU available: False",
+    "was configured so 1 batch per epoch will be used") drowns what the apps print; its
+    warnings still show."""
+    for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+
+
+def remove_if_empty(folder: Path | None) -> None:
+    """Delete a run folder that holds nothing but what every run writes at its start."""
+    if folder is None or not folder.is_dir():
+        return
+    if all(p.name in _STARTUP_FILES for p in folder.iterdir()):
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def run_app(fn: Callable[[], T], run_dir: str | os.PathLike | None = None) -> T:
+    """Run an app's body; on one of the project's errors print one line and exit with 2."""
+    quiet_lightning()
+    try:
+        return fn()
+    except (ValueError, *_WRAPPERS) as exc:
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        remove_if_empty(Path(run_dir) if run_dir else None)
+        sys.exit(2)
