@@ -9,7 +9,6 @@ scanline. The data settings saved in the checkpoint are used unless ``data`` is 
 from __future__ import annotations
 
 import csv
-import json
 from pathlib import Path
 
 import hydra
@@ -22,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.cli import run_app
 from odmv.metrics import DepthErrors
-from odmv.module import PREDICTIONS, SCENES_CSV, load_module, net_input
+from odmv.module import PREDICTIONS, SCENES_CSV, load_module, net_input, write_json
 from odmv.simulate import CONF_DIR
 
 matplotlib.use("Agg")
@@ -145,7 +144,7 @@ def evaluate(cfg: DictConfig) -> dict:
     metrics["constant/depth_mm"] = const
     metrics.update(family_errors(out_dir, const))
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
+    write_json(out_dir / "metrics.json", metrics)
     module.eval()
     ds = dm.datasets["test"]
     with torch.no_grad():
