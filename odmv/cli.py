@@ -12,7 +12,9 @@ import logging
 import os
 import shutil
 import sys
+import warnings
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
 
@@ -42,6 +44,11 @@ def quiet_lightning() -> None:
     warnings still show."""
     for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero"):
         logging.getLogger(name).setLevel(logging.WARNING)
+    # Lightning's own pytree helper builds torch's deprecated LeafSpec; nothing a user can act on
+    warnings.filterwarnings("ignore", message=r".*isinstance\(treespec, LeafSpec\)")
+    # the training loss is logged per epoch too, so an epoch shorter than the step interval
+    # still draws its curve (train/loss_epoch, odmv.module.FPPModule.training_step)
+    warnings.filterwarnings("ignore", message=r"The number of training batches .* logging interval")
 
 
 def remove_if_empty(folder: Path | None) -> None:
@@ -52,14 +59,39 @@ def remove_if_empty(folder: Path | None) -> None:
         shutil.rmtree(folder, ignore_errors=True)
 
 
-def run_app(fn: Callable[[], T], run_dir: str | os.PathLike | None = None) -> T:
-    """Run an app's body; on one of the project's errors print one line and exit with 2."""
+@dataclass(frozen=True)
+class JobFailed:
+    """What a multirun job's app returns instead of exiting: the sweep goes on with its other
+    jobs, odmv.sweep writes ``error`` into the job's results.csv row and exits with 2 at the end."""
+
+    error: str
+
+
+def run_app(fn: Callable[[], T], run_dir: str | os.PathLike | None = None) -> T | JobFailed:
+    """Run an app's body; on one of the project's errors print one line and exit with 2
+    (in a multirun: return JobFailed)."""
     quiet_lightning()
     try:
         return fn()
     except (ValueError, *_WRAPPERS) as exc:
         if os.environ.get("HYDRA_FULL_ERROR") == "1":
             raise
-        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        line = _one_line(exc)
+        print(f"error: {line}", file=sys.stderr)
         remove_if_empty(Path(run_dir) if run_dir else None)
+        if _in_multirun():
+            return JobFailed(line)
         sys.exit(2)
+
+
+def _in_multirun() -> bool:
+    from hydra.core.hydra_config import HydraConfig
+
+    return HydraConfig.initialized() and str(HydraConfig.get().mode) == "RunMode.MULTIRUN"
+
+
+def task_overrides() -> list[str]:
+    """The command line's overrides of the running Hydra app (empty outside one)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    return list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []

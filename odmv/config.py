@@ -46,6 +46,11 @@ def in_channels(views, reference) -> int:
     return n_views(views) * view_channels(reference)
 
 
+def first_set(*values):
+    """The first value that is not null: ``${odmv.first:${out},DEFAULT}``."""
+    return next((v for v in values if v is not None), None)
+
+
 def csv_list(values) -> str:
     """[0, 1] -> "0,1": a list as a Hydra sweep value (sweep configs' seeds)."""
     return ",".join(str(v) for v in values)
@@ -53,6 +58,7 @@ def csv_list(values) -> str:
 
 for _name, _fn in (
     ("odmv.csv", csv_list),
+    ("odmv.first", first_set),
     ("odmv.view_channels", view_channels),
     ("odmv.in_channels", in_channels),
     ("odmv.views", view_list),

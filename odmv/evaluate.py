@@ -3,7 +3,8 @@
 Writes ``metrics.json`` (mm, all pixels and pixels shadowed in at least one input view, next to
 a constant-depth predictor) and per-sample figures like the paper's Figs. 4-7: input fringes,
 ground truth, prediction, absolute error on a fixed mm scale, and a depth profile along a
-scanline. The data settings saved in the checkpoint are used unless ``data`` is overridden.
+scanline. The data settings saved in the checkpoint are used; only ``root=PATH`` and
+``data.KEY=VALUE`` on the command line change them, and the dataset is read, never rendered.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
-from odmv.cli import run_app
+from odmv.cli import run_app, task_overrides
 from odmv.metrics import DepthErrors
 from odmv.module import PREDICTIONS, SCENES_CSV, load_module, net_input, write_json
 from odmv.simulate import CONF_DIR
@@ -53,14 +54,6 @@ def family_errors(out_dir: Path, const_mm: float) -> dict[str, float]:
         out[f"family/{fam}/mae_mm"] = float(np.abs(p[valid] - gt[valid]).mean())
         out[f"family/{fam}/constant_mae_mm"] = float(np.abs(const_mm - gt[valid]).mean())
     return out
-
-
-def mean_train_depth(dm) -> float:
-    total, count = 0.0, 0
-    for batch in dm.train_dataloader():
-        total += float((batch["depth_mm"] * batch["valid"]).sum())
-        count += float(batch["valid"].sum())
-    return total / max(count, 1)
 
 
 def save_figure(
@@ -118,28 +111,52 @@ def save_figure(
     plt.close(fig)
 
 
-def evaluate(cfg: DictConfig) -> dict:
-    """Test metrics and figures for ``cfg.ckpt_path``; returns the metrics dict."""
+def data_settings(saved: dict, cfg: DictConfig, overrides: list[str]) -> dict:
+    """The checkpoint's data settings, changed only where the command line says so:
+    ``root=PATH`` (or ``data.root=PATH``) points them at another dataset and ``data.KEY=VALUE``
+    changes one setting. The dataset is read, never rendered: a missing one is an error."""
+    data = dict(saved)
+    for override in overrides:
+        key = override.partition("=")[0].lstrip("+~")
+        if key == "root":
+            data["root"] = cfg.root
+        elif key.startswith("data."):
+            name = key.split(".")[1]
+            value = OmegaConf.select(cfg, f"data.{name}")
+            data[name] = (
+                OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
+            )
+    if data.get("root") is None:
+        raise ValueError("root: the checkpoint names no dataset; give root=PATH")
+    data["root"] = str(Path(data["root"]).resolve())
+    data.update(progress=False, render=False, simulate=None)
+    return data
+
+
+def evaluate(cfg: DictConfig, overrides: list[str] | None = None) -> dict:
+    """Test metrics and figures for ``cfg.ckpt_path``; returns the metrics dict.
+    ``overrides``: the command line's (default: Hydra's), which pick the data settings
+    that differ from the checkpoint's (:func:`data_settings`)."""
     out_dir = Path(cfg.paths.output_dir)
     module = load_module(cfg.ckpt_path)
-    data_cfg = OmegaConf.to_container(cfg.data, resolve=True) if cfg.get("data") else None
-    data_cfg = data_cfg or dict(module.hparams.data_cfg)
-    data_cfg["progress"] = False
+    overrides = task_overrides() if overrides is None else overrides
+    data_cfg = data_settings(dict(module.hparams.data_cfg or {}), cfg, overrides)
     data_cfg["views"] = list(module.hparams.views)  # the views the net was trained on
     dm = hydra.utils.instantiate(data_cfg, _convert_="all")
     dm.prepare_data()
-    dm.setup()
+    dm.setup("test")  # the test split only; the constant needs just the training depth maps
+    print(f"evaluating {cfg.ckpt_path} on the test split of {dm.root}", flush=True)
     trainer = L.Trainer(
         accelerator=cfg.accelerator,
         devices=1,
         logger=False,
-        enable_progress_bar=False,
+        enable_progress_bar=cfg.progress,
         enable_model_summary=False,
     )
     module.test_dir = out_dir
     results = trainer.test(module, datamodule=dm, verbose=False)[0]
     metrics = {k: float(v) for k, v in results.items()}
-    const = mean_train_depth(dm)
+    const = dm.mean_depth_mm("train")
     metrics.update({f"constant/{k}": v for k, v in constant_predictor_errors(dm, const).items()})
     metrics["constant/depth_mm"] = const
     metrics.update(family_errors(out_dir, const))

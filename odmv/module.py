@@ -14,11 +14,14 @@ from dataclasses import asdict
 from pathlib import Path
 
 import hydra
+import hydra.errors
 import lightning as L
 import numpy as np
 import torch
+from lightning.pytorch.loggers import TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_only
 
+from odmv.checkpoint import CheckpointError, check_weights, read_checkpoint
 from odmv.data.normalize import Normalization
 from odmv.losses import LossWeights, composite_loss
 from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_suffix
@@ -44,9 +47,11 @@ class FPPModule(L.LightningModule):
         log_images: int = 2,
         data_cfg: dict | None = None,
         input_spec: dict | None = None,
+        run_info: dict | None = None,
     ):
         super().__init__()
-        self.save_hyperparameters()
+        # logged by on_fit_start once the data has resolved the views and normalization
+        self.save_hyperparameters(logger=False)
         self.net = build_net(net_cfg)
         self.norm = Normalization(**norm) if norm else None
         self.weights = LossWeights(**(loss or {}))
@@ -77,6 +82,10 @@ class FPPModule(L.LightningModule):
                 "step": spec.step,
                 "n_steps": spec.n_steps,
             }
+            # one input at the data's size: the model summary then counts FLOPs per sample
+            ds = next(iter(dm.datasets.values()), None)
+            if ds is not None and len(ds):
+                self.example_input_array = torch.zeros_like(net_input(ds[0]))[None]
 
     def forward(self, inputs: torch.Tensor) -> dict:
         """``inputs``: the net's input, i.e. a batch's ``inputs`` (fringes plus the reference
@@ -96,6 +105,8 @@ class FPPModule(L.LightningModule):
             )
         bs = batch["fringes"].shape[0]
         self.log("train/loss", terms["loss"], prog_bar=True, batch_size=bs)
+        # the epoch mean draws a curve even when an epoch is shorter than log_every_n_steps
+        self.log("train/loss_epoch", terms["loss"], on_step=False, on_epoch=True, batch_size=bs)
         for k, v in terms.items():
             if k != "loss":
                 self.log(f"train/loss_{k}", v, batch_size=bs)
@@ -198,11 +209,34 @@ class FPPModule(L.LightningModule):
             tb.add_image("val/views_reconstructed", grid((out["views"][:n].detach() + 1) / 2), step)
 
     def on_fit_start(self):
-        n = sum(p.numel() for p in self.net.parameters())
+        """Key settings with the metrics they led to, for TensorBoard's HPARAMS tab (which shows
+        the last logged value of each metric) and the loggers' hparams.yaml."""
+        params = {
+            **(self.hparams.run_info or {}),
+            "views": ",".join(self.hparams.views or []),
+            "parameters": sum(p.numel() for p in self.net.parameters()),
+            **{f"norm/{k}": v for k, v in (self.hparams.norm or {}).items()},
+            **{f"loss/{k}": str(v) for k, v in asdict(self.weights).items()},
+        }
+        params = {k: v for k, v in params.items() if v is not None}
         for lg in self.loggers:
-            lg.log_hyperparams(
-                {"parameters": n, **{f"loss/{k}": str(v) for k, v in asdict(self.weights).items()}}
-            )
+            lg.log_hyperparams(params)
+            if isinstance(lg, TensorBoardLogger):
+                _add_hparams_session(lg, params)
+
+
+HPARAM_METRICS = ("val/mae_mm", "val/mae_mm_shadowed", "test/mae_mm", "test/mae_mm_shadowed")
+
+
+@rank_zero_only
+def _add_hparams_session(logger: TensorBoardLogger, params: dict) -> None:
+    """Write the HPARAMS session without logging placeholder metric values (Lightning's own
+    call would log them as a first point of each curve)."""
+    from torch.utils.tensorboard.summary import hparams
+
+    writer = logger.experiment._get_file_writer()
+    for summary in hparams(params, dict.fromkeys(HPARAM_METRICS, 0.0)):
+        writer.add_summary(summary)
 
 
 def net_input(batch: dict) -> torch.Tensor:
@@ -247,6 +281,14 @@ def write_test_outputs(folder: Path, rows: list[dict], predictions: dict[str, li
     os.replace(tmp, folder / PREDICTIONS)
 
 
-def load_module(ckpt_path: str, map_location="cpu") -> FPPModule:
-    """Rebuild a trained module from its checkpoint alone (weights_only loading)."""
-    return FPPModule.load_from_checkpoint(ckpt_path, map_location=map_location, weights_only=True)
+def load_module(ckpt_path: str | Path) -> FPPModule:
+    """Rebuild a trained module (on the CPU) from its checkpoint alone; a missing, unreadable,
+    foreign or inconsistent file raises CheckpointError naming it."""
+    ckpt = read_checkpoint(ckpt_path)
+    try:
+        module = FPPModule(**ckpt["hyper_parameters"])
+    except (TypeError, ValueError, hydra.errors.InstantiationException) as e:
+        raise CheckpointError(f"{ckpt_path}: its net settings do not build a net ({e})") from None
+    check_weights(ckpt_path, ckpt["state_dict"], module.state_dict())
+    module.load_state_dict(ckpt["state_dict"])
+    return module

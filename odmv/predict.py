@@ -114,7 +114,8 @@ def predict(cfg: DictConfig) -> dict[str, Path]:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="predict")
 def main(cfg: DictConfig) -> None:
-    paths = run_app(lambda: predict(cfg), cfg.paths.output_dir)
+    # a folder the user named is theirs: never removed, even when the prediction fails
+    paths = run_app(lambda: predict(cfg), None if cfg.out else cfg.paths.output_dir)
     print(f"depth (mm): {paths['depth']}\npoint cloud: {paths['points']}")
 
 

@@ -18,7 +18,6 @@ import json
 import os
 import platform
 import subprocess
-import sys
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -28,6 +27,7 @@ import matplotlib
 import numpy as np
 from omegaconf import DictConfig
 
+from odmv.cli import run_app
 from odmv.module import PREDICTIONS, SCENES_CSV
 from odmv.simulate import CONF_DIR
 
@@ -515,15 +515,11 @@ def write_report(
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="report")
 def main(cfg: DictConfig) -> None:
     runs = [cfg.runs] if isinstance(cfg.runs, str) else list(cfg.runs)
-    try:
-        path = write_report(
+    path = run_app(
+        lambda: write_report(
             [Path(p) for p in runs], Path(cfg.out), cfg.protocol, cfg.figures, cfg.error_scale_mm
         )
-    except ReportError as e:
-        if os.environ.get("HYDRA_FULL_ERROR") == "1":
-            raise
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
+    )
     print(f"report: {path}")
 
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -30,6 +29,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.classical import classical_row
+from odmv.cli import run_app
 from odmv.report import write_report
 from odmv.simulate import CONF_DIR
 
@@ -185,13 +185,7 @@ def reproduce(cfg: DictConfig) -> Path:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="reproduce")
 def main(cfg: DictConfig) -> None:
-    try:
-        reproduce(cfg)
-    except ReproduceError as e:
-        if os.environ.get("HYDRA_FULL_ERROR") == "1":
-            raise
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
+    run_app(lambda: reproduce(cfg))
 
 
 if __name__ == "__main__":

@@ -11,8 +11,8 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from odmv.sim.scenes import SceneError
-from odmv.sim.writer import SimSettings, SimulationError, simulate
+from odmv.cli import run_app
+from odmv.sim.writer import SimSettings, simulate
 from odmv.validate import validate
 
 CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
@@ -44,11 +44,7 @@ def run(cfg: DictConfig) -> int:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="simulate")
 def main(cfg: DictConfig) -> None:
-    try:
-        code = run(cfg)
-    except (SimulationError, SceneError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        code = 2
+    code = run_app(lambda: run(cfg))
     if code:
         sys.exit(code)
 

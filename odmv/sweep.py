@@ -5,12 +5,15 @@ from __future__ import annotations
 
 import csv
 import fcntl
+import sys
 from pathlib import Path
 
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
+
+from odmv.cli import JobFailed
 
 RESULTS = "results.csv"
 
@@ -40,11 +43,29 @@ class CollectResults(Callback):
         for ov in hc.overrides.task:
             key, _, value = ov.partition("=")
             row[key.lstrip("+~")] = value
-        if job_return.status == JobStatus.COMPLETED and isinstance(job_return.return_value, dict):
-            for key, value in job_return.return_value.items():
+        value = job_return._return_value  # the property raises for a failed job
+        if job_return.status == JobStatus.COMPLETED and isinstance(value, dict):
+            for key, v in value.items():
                 if key not in row:  # the override columns stay as the user typed them
-                    row[key] = "+".join(map(str, value)) if isinstance(value, list) else value
+                    row[key] = "+".join(map(str, v)) if isinstance(v, list) else v
             row["status"] = "ok"
         else:
             row["status"] = "failed"
+            row["error"] = value.error if isinstance(value, JobFailed) else _one_line(value)
         append_row(Path(hc.sweep.dir) / RESULTS, row)
+
+    def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
+        path = Path(config.hydra.sweep.dir) / RESULTS
+        rows = list(csv.DictReader(path.open())) if path.is_file() else []
+        failed = [r for r in rows if r.get("status") == "failed"]
+        if failed:
+            print(
+                f"error: {path}: {len(failed)} of {len(rows)} jobs failed (their rows say why)",
+                file=sys.stderr,
+            )
+            sys.exit(2)
+
+
+def _one_line(value) -> str:
+    text = str(value).strip().splitlines()
+    return f"{type(value).__name__}: {text[0]}" if text else type(value).__name__

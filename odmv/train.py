@@ -16,33 +16,55 @@ import lightning as L
 from omegaconf import DictConfig, OmegaConf
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
-from odmv.cli import run_app
+from odmv.checkpoint import check_fits, check_weights, read_checkpoint
+from odmv.cli import JobFailed, remove_if_empty, run_app, task_overrides
 from odmv.module import FPPModule, write_json
 from odmv.simulate import CONF_DIR
 from odmv.sweep import append_row
 
 
-def _flat(d: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict):
-            out.update(_flat(v, key + "/"))
-        else:
-            out[key] = v if isinstance(v, (int, float, str, bool)) or v is None else str(v)
-    return out
+def data_config(cfg: DictConfig) -> dict:
+    """The resolved data settings with absolute dataset and cache folders, so a checkpoint
+    finds its dataset from any working directory."""
+    data = OmegaConf.to_container(cfg.data, resolve=True)
+    for key in ("root", "cache_dir"):
+        if data.get(key) is not None:
+            data[key] = str(Path(data[key]).resolve())
+    return data
+
+
+def run_summary(cfg: DictConfig) -> dict:
+    """The settings that tell runs apart, for TensorBoard's HPARAMS tab (the module adds the
+    resolved views, normalization and parameter count)."""
+    return {
+        "model": cfg.model.name,
+        "ablation": cfg.get("ablation"),
+        "seed": cfg.seed,
+        "width": cfg.model.net.get("base_width"),
+        "lr": cfg.optimizer.lr,
+        "batch_size": cfg.data.batch_size,
+        "resolution": str(cfg.data.resolution),
+        "max_epochs": cfg.trainer.max_epochs,
+        "norm": cfg.get("norm"),
+        "reference": str(cfg.get("reference")),
+        "stem_stride": cfg.get("stem_stride"),
+        "depth_target": cfg.data.get("depth_target"),
+        "precision": str(cfg.trainer.precision),
+    }
 
 
 def build(cfg: DictConfig):
     """Data module, module, trainer from a composed config (shared with evaluation)."""
-    dm = hydra.utils.instantiate(cfg.data, _convert_="all")
+    data_cfg = data_config(cfg)
+    dm = hydra.utils.instantiate(data_cfg, _convert_="all")
     module = FPPModule(
         net_cfg=OmegaConf.to_container(cfg.model.net, resolve=True),
         loss=OmegaConf.to_container(cfg.loss, resolve=True),
         optimizer=OmegaConf.to_container(cfg.optimizer, resolve=True),
         scheduler=OmegaConf.to_container(cfg.scheduler, resolve=True),
         log_images=cfg.log_images,
-        data_cfg=OmegaConf.to_container(cfg.data, resolve=True),
+        data_cfg=data_cfg,
+        run_info=run_summary(cfg),
     )
     loggers = [hydra.utils.instantiate(c) for c in (cfg.get("logger") or {}).values()]
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()]
@@ -50,16 +72,61 @@ def build(cfg: DictConfig):
     return dm, module, trainer
 
 
+def run_folder_of(ckpt_path: str | Path) -> Path | None:
+    """The run folder a checkpoint was saved in (``RUN/checkpoints/*.ckpt``), if any."""
+    folder = Path(ckpt_path).resolve().parent.parent
+    is_run = Path(ckpt_path).resolve().parent.name == "checkpoints" and (folder / ".hydra").is_dir()
+    return folder if is_run else None
+
+
+def resumed_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
+    """``resume=RUN``: the run's own config, continuing from its last checkpoint; other
+    ``key=value`` overrides on the command line (e.g. trainer.max_epochs=80) apply on top."""
+    run = Path(cfg.resume).resolve()
+    saved = run / ".hydra" / "config.yaml"
+    if not saved.is_file():
+        raise ValueError(f"resume: {run}: not a run folder (no .hydra/config.yaml)")
+    out = OmegaConf.load(saved)
+    for override in overrides:
+        key, _, value = override.partition("=")
+        if key in ("resume", "ckpt_path"):
+            continue
+        if OmegaConf.select(out, key, default=_MISSING) is _MISSING:
+            raise ValueError(
+                f"resume: {key} is not a setting of the run in {run} (a resumed run keeps its "
+                "config groups)"
+            )
+        OmegaConf.update(out, key, cfg_value(cfg, key, value), merge=False)
+    out.ckpt_path = str(run / "checkpoints" / "last.ckpt")
+    return out
+
+
+_MISSING = object()
+
+
+def cfg_value(cfg: DictConfig, key: str, text: str):
+    """An override's value as Hydra parsed it into ``cfg`` (``text`` if Hydra dropped it)."""
+    value = OmegaConf.select(cfg, key, default=text)
+    return OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
+
+
 def train(cfg: DictConfig) -> dict[str, float]:
-    """Fit, then test the best checkpoint; returns the test metrics (mm)."""
+    """Fit, then test the best checkpoint; returns the test metrics (mm). Continuing from a
+    checkpoint in a run folder (``ckpt_path=RUN/checkpoints/last.ckpt``) continues that
+    folder: its TensorBoard and CSV logs, and its best checkpoint."""
     L.seed_everything(cfg.seed, workers=True, verbose=False)
+    ckpt = read_checkpoint(cfg.ckpt_path) if cfg.ckpt_path else None
+    if ckpt is not None and (run := run_folder_of(cfg.ckpt_path)) is not None:
+        cfg.paths.output_dir = str(run)
+        print(f"continuing {run} from epoch {ckpt.get('epoch', 0) + 1}", flush=True)
     out_dir = Path(cfg.paths.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     dm, module, trainer = build(cfg)
-    for lg in trainer.loggers:
-        lg.log_hyperparams(_flat(OmegaConf.to_container(cfg, resolve=True)))
+    if ckpt is not None:
+        check_fits(cfg.ckpt_path, ckpt, module.hparams.net_cfg, list(dm.views))
+        check_weights(cfg.ckpt_path, ckpt["state_dict"], module.state_dict())
     t0 = time.perf_counter()
-    trainer.fit(module, datamodule=dm, ckpt_path=cfg.ckpt_path)
+    trainer.fit(module, datamodule=dm, ckpt_path=cfg.ckpt_path, weights_only=True)
     train_seconds = time.perf_counter() - t0
     dm.save_split(out_dir / "split.json")
     metrics: dict = {}
@@ -68,7 +135,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
         module.test_dir = out_dir
         results = trainer.test(module, datamodule=dm, ckpt_path=best or None, weights_only=True)
         metrics = {k: float(v) for k, v in results[0].items()}
-        overrides = _task_overrides()
+        overrides = task_overrides()
         metrics.update(
             best_checkpoint=best,
             train_seconds=round(train_seconds, 1),
@@ -89,16 +156,21 @@ def train(cfg: DictConfig) -> dict[str, float]:
     return metrics
 
 
-def _task_overrides() -> list[str]:
-    from hydra.core.hydra_config import HydraConfig
-
-    return list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
-
-
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="train")
 def main(cfg: DictConfig) -> dict[str, float]:
-    out = Path(cfg.paths.output_dir)
-    metrics = run_app(lambda: train(cfg), out)
+    hydra_dir = Path(cfg.paths.output_dir)
+
+    def body() -> tuple[DictConfig, dict]:
+        run_cfg = resumed_config(cfg, task_overrides()) if cfg.get("resume") else cfg
+        return run_cfg, train(run_cfg)
+
+    result = run_app(body, hydra_dir)
+    if isinstance(result, JobFailed):
+        return result
+    run_cfg, metrics = result
+    out = Path(run_cfg.paths.output_dir)
+    if out.resolve() != hydra_dir.resolve():  # continued another run's folder
+        remove_if_empty(hydra_dir)
     print(f"run folder: {out}\n  TensorBoard: tensorboard --logdir {out / 'tensorboard'}")
     if metrics:
         print(

@@ -1,8 +1,10 @@
 import shutil
 
 import pytest
+from helpers import compose_config, tiny_overrides
 
 from odmv.sim.writer import SimSettings, simulate
+from odmv.train import train
 
 
 @pytest.fixture(scope="session")
@@ -21,3 +23,11 @@ def tiny_dataset(tmp_path_factory):
 def dataset_copy(tiny_dataset, tmp_path):
     """A private copy that a test may damage."""
     return shutil.copytree(tiny_dataset, tmp_path / "copy")
+
+
+@pytest.fixture(scope="session")
+def trained(tiny_dataset, tmp_path_factory):
+    """A tiny ODMV-Net trained for one epoch: (run folder, test metrics)."""
+    out = tmp_path_factory.mktemp("run")
+    metrics = train(compose_config("train", tiny_overrides(tiny_dataset, out)))
+    return out, metrics

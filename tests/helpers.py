@@ -1,11 +1,13 @@
 """Small helpers shared by test modules (pytest puts tests/ on sys.path)."""
 
 import numpy as np
+from hydra import compose, initialize_config_dir
 
 from odmv.io.manifest import FringeSpec
 from odmv.rig import VIEW_NAMES, Rig
 from odmv.sim.render import RenderConfig, render_scene
 from odmv.sim.scenes import build_scene
+from odmv.simulate import CONF_DIR
 
 RIG = Rig()
 CLEAN = RenderConfig(full_well_e=0.0, read_noise=0.0)  # noise-free
@@ -18,3 +20,32 @@ def render(parts, size, images="training", cfg=CLEAN):
     return render_scene(
         scene, RIG, size, size, FRINGE, VIEW_NAMES, cfg, np.random.default_rng(0), images=images
     )
+
+
+def tiny_overrides(dataset, out, *extra):
+    """Overrides for a seconds-long training run on ``dataset`` at 32 px, writing into ``out``."""
+    return [
+        "data=exr",
+        f"root={dataset}",
+        "data.resolution=32",
+        "data.batch_size=2",
+        "data.num_workers=0",
+        "data.progress=false",
+        f"data.cache_dir={out}/cache",
+        "model.net.base_width=4",
+        "model.net.blocks=1",
+        "trainer.max_epochs=1",
+        "trainer.accelerator=cpu",
+        "trainer.enable_progress_bar=false",
+        "trainer.enable_model_summary=false",
+        "trainer.log_every_n_steps=1",
+        "trainer.limit_train_batches=2",
+        f"paths.output_dir={out}",
+        "log_images=1",
+        *extra,
+    ]
+
+
+def compose_config(name, overrides):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(name, overrides=overrides)

@@ -77,3 +77,24 @@ def test_a_non_finite_loss_stops_training_with_a_clear_message():
     }
     with pytest.raises(NonFiniteLossError, match=r"train/loss: nan at epoch 0.*000001, 000002"):
         module.training_step(batch, 0)
+
+
+@pytest.mark.parametrize(
+    ("damage", "message"),
+    [
+        ("manifest", "manifest.json: "),
+        ("exr", "depth.exr: "),
+    ],
+)
+def test_a_damaged_dataset_file_is_named_in_one_line(dataset_copy, tmp_path, damage, message):
+    if damage == "manifest":
+        bad = dataset_copy / "manifest.json"
+        bad.write_text("{ not json")
+    else:
+        bad = dataset_copy / "scenes" / "000002" / "depth.exr"
+        bad.write_bytes(bad.read_bytes()[:200])
+    done, run = _train(tmp_path, "data=exr", f"root={dataset_copy}", "data.resolution=32")
+    assert done.returncode == 2, done.stderr[-3000:]
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {bad}"), done.stderr[-3000:]
+    assert not run.exists()

@@ -7,49 +7,13 @@ import sys
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
+from helpers import compose_config, tiny_overrides
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from odmv.evaluate import evaluate, report
 from odmv.io.exr import read_channel, write_exr
 from odmv.predict import predict
-from odmv.simulate import CONF_DIR
 from odmv.train import train
-
-
-def _tiny(dataset, out, *extra):
-    return [
-        "data=exr",
-        f"root={dataset}",
-        "data.resolution=32",
-        "data.batch_size=2",
-        "data.num_workers=0",
-        "data.progress=false",
-        f"data.cache_dir={out}/cache",
-        "model.net.base_width=4",
-        "model.net.blocks=1",
-        "trainer.max_epochs=1",
-        "trainer.accelerator=cpu",
-        "trainer.enable_progress_bar=false",
-        "trainer.enable_model_summary=false",
-        "trainer.log_every_n_steps=1",
-        "trainer.limit_train_batches=2",
-        f"paths.output_dir={out}",
-        "log_images=1",
-        *extra,
-    ]
-
-
-def _compose(name, overrides):
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return compose(name, overrides=overrides)
-
-
-@pytest.fixture(scope="module")
-def trained(tiny_dataset, tmp_path_factory):
-    out = tmp_path_factory.mktemp("run")
-    metrics = train(_compose("train", _tiny(tiny_dataset, out)))
-    return out, metrics
 
 
 def test_train_writes_checkpoints_metrics_and_tensorboard(trained):
@@ -69,7 +33,14 @@ def test_train_writes_checkpoints_metrics_and_tensorboard(trained):
         "val/views_reconstructed",
     ):
         assert tag in tags["images"], tag
-    for tag in ("train/loss", "train/loss_main", "train/loss_view", "val/mae_mm", "lr-Adam"):
+    for tag in (
+        "train/loss",
+        "train/loss_epoch",
+        "train/loss_main",
+        "train/loss_view",
+        "val/mae_mm",
+        "lr-Adam",
+    ):
         assert tag in tags["scalars"], tag
     ckpt = torch.load(out / "checkpoints" / "last.ckpt", weights_only=True)
     assert ckpt["hyper_parameters"]["views"] == ["right", "down", "left", "up"]
@@ -80,9 +51,11 @@ def test_resume_continues_from_the_saved_epoch(trained, tiny_dataset, tmp_path):
     last = out / "checkpoints" / "last.ckpt"
     before = torch.load(last, weights_only=True)
     assert before["epoch"] == 0 and before["global_step"] == 2
-    cfg = _compose(
+    cfg = compose_config(
         "train",
-        _tiny(tiny_dataset, tmp_path, f"ckpt_path={last}", "trainer.max_epochs=2", "test=false"),
+        tiny_overrides(
+            tiny_dataset, tmp_path, f"ckpt_path={last}", "trainer.max_epochs=2", "test=false"
+        ),
     )
     train(cfg)
     after = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)
@@ -92,7 +65,7 @@ def test_resume_continues_from_the_saved_epoch(trained, tiny_dataset, tmp_path):
 
 def test_evaluate_writes_metrics_and_figures(trained, tmp_path):
     out, metrics = trained
-    cfg = _compose(
+    cfg = compose_config(
         "evaluate",
         [
             f"ckpt_path={metrics['best_checkpoint']}",
@@ -135,7 +108,7 @@ def _ply_count(path):
 def test_predict_scene_and_image_folder(trained, tiny_dataset, tmp_path):
     _, metrics = trained
     scene = tiny_dataset / "scenes" / "000004"
-    cfg = _compose(
+    cfg = compose_config(
         "predict",
         [
             f"ckpt_path={metrics['best_checkpoint']}",
@@ -154,7 +127,7 @@ def test_predict_scene_and_image_folder(trained, tiny_dataset, tmp_path):
         write_exr(
             folder / f"{v}.exr", {"Y": read_channel(scene / "fringe" / f"{v}_f2_s00.exr", "Y")}
         )
-    cfg = _compose(
+    cfg = compose_config(
         "predict",
         [
             f"ckpt_path={metrics['best_checkpoint']}",
@@ -167,22 +140,40 @@ def test_predict_scene_and_image_folder(trained, tiny_dataset, tmp_path):
     np.testing.assert_array_equal(read_channel(predict(cfg)["depth"], "Z"), depth)
 
 
-def test_multirun_writes_one_csv(tiny_dataset, tmp_path):
+def test_multirun_writes_one_csv_with_failed_jobs_and_their_errors(tiny_dataset, tmp_path):
     sweep = tmp_path / "sweep"
-    args = [a for a in _tiny(tiny_dataset, tmp_path) if not a.startswith("paths.output_dir")]
+    args = [
+        a
+        for a in tiny_overrides(tiny_dataset, tmp_path)
+        if not a.startswith(("paths.output_dir", "data.resolution"))
+    ]
     cmd = [
         sys.executable,
         "-m",
         "odmv.train",
         "-m",
         "views=1,2",
+        "data.resolution=32,40",
         *args,
         "paths.output_dir=${hydra:runtime.output_dir}",
         f"hydra.sweep.dir={sweep}",
         "trainer.limit_train_batches=1",
     ]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr[-2000:]
+    # every job ran; the sweep then exits with 2 and points at the table
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert done.stderr.strip().endswith(
+        f"{sweep / 'results.csv'}: 2 of 4 jobs failed (their rows say why)"
+    )
     rows = list(csv.DictReader((sweep / "results.csv").open()))
-    assert [r["views"] for r in rows] == ["1", "2"]
-    assert all(r["status"] == "ok" and float(r["test/mae_mm"]) > 0 for r in rows)
+    assert [(r["views"], r["data.resolution"]) for r in rows] == [
+        ("1", "32"),
+        ("1", "40"),
+        ("2", "32"),
+        ("2", "40"),
+    ]
+    for r in rows:
+        if r["data.resolution"] == "32":
+            assert r["status"] == "ok" and float(r["test/mae_mm"]) > 0 and not r["error"]
+        else:
+            assert r["status"] == "failed" and r["error"].startswith("data.resolution: 40x40")

@@ -8,6 +8,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import lightning as L
+import numpy as np
 import torch
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from torch.utils.data import ConcatDataset
@@ -19,11 +20,20 @@ from odmv.data.dataset import (
     SampleSpec,
     check_spec,
     fingerprint,
+    load_depth,
     load_scene,
     split_scenes,
 )
 from odmv.data.normalize import Normalization
 from odmv.io.manifest import MANIFEST, Manifest, ManifestError, load_manifest
+
+#: The splits each Lightning stage reads (evaluation never decodes the training split).
+_STAGE_SPLITS = {
+    "fit": ("train", "val"),
+    "validate": ("val",),
+    "test": ("test",),
+    "predict": ("test",),
+}
 
 
 class FPPDataModule(L.LightningDataModule):
@@ -110,13 +120,28 @@ class FPPDataModule(L.LightningDataModule):
             simulate(settings, workers=self.simulate.get("workers"), progress=self.progress)
 
     def setup(self, stage: str | None = None) -> None:
-        if self.datasets:
-            return
+        """Read the manifest, then check (and cache) the splits the stage uses: fit decodes
+        train and val, validate val, test and predict only test; None decodes all three."""
+        if self.manifest is None:
+            self._read_manifest()
+        for name in _STAGE_SPLITS.get(stage, ("train", "val", "test")):
+            if name in self.datasets:
+                continue
+            ids = self.splits[name]
+            specs = self._train_specs() if name == "train" and self.train_steps else [self.spec]
+            parts = [
+                FringeDataset(
+                    self.manifest, ids, spec, self.norm, self._checked_cache(name, ids, spec)
+                )
+                for spec in specs
+            ]
+            self.datasets[name] = parts[0] if len(parts) == 1 else ConcatDataset(parts)
+
+    def _read_manifest(self) -> None:
         try:
             m = load_manifest(self.root)
         except ManifestError as e:
             raise DataError(str(e)) from None
-        self.manifest = m
         self.spec = check_spec(
             m,
             self.views,
@@ -135,13 +160,19 @@ class FPPDataModule(L.LightningDataModule):
             self.depth_target,
         )
         self.splits = split_scenes(m, self.split_fractions, self.split_seed)
-        for name, ids in self.splits.items():
-            specs = self._train_specs() if name == "train" and self.train_steps else [self.spec]
-            parts = [
-                FringeDataset(m, ids, spec, self.norm, self._checked_cache(name, ids, spec))
-                for spec in specs
-            ]
-            self.datasets[name] = parts[0] if len(parts) == 1 else ConcatDataset(parts)
+        self.manifest = m
+
+    def mean_depth_mm(self, split: str = "train") -> float:
+        """Mean ground-truth depth (mm) of a split at the network's size, from the depth maps
+        alone: the constant predictor's value, without decoding the split's fringes."""
+        if self.manifest is None:
+            self._read_manifest()
+        total, count = 0.0, 0
+        for sid in self.splits[split]:
+            depth = load_depth(self.manifest, sid, self.spec)
+            total += float(depth.sum(dtype=np.float64))
+            count += depth.size
+        return total / max(count, 1)
 
     def _train_specs(self) -> list[SampleSpec]:
         """One sample spec per phase step of ``train_steps`` (checked like ``fringe_step``)."""

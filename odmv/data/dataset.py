@@ -152,6 +152,24 @@ def _read(path: Path, channels: list[str]) -> dict[str, np.ndarray]:
         raise DataError(str(e)) from None
 
 
+def _full_depth(m: Manifest, sid: str) -> np.ndarray:
+    """A scene's depth map (mm) at the dataset's size; refuses a wrong shape or non-finite data."""
+    path = m.scene_dir(sid) / DEPTH_FILE
+    depth = _read(path, [DEPTH_CHANNEL])[DEPTH_CHANNEL].astype(np.float32, copy=False)
+    if depth.shape != (m.height_px, m.width_px):
+        raise DataError(
+            f"{path}: shape {depth.shape} differs from the manifest's {(m.height_px, m.width_px)}"
+        )
+    if not np.isfinite(depth).all():
+        raise DataError(f"{path}: {int((~np.isfinite(depth)).sum())} non-finite depth values")
+    return depth
+
+
+def load_depth(m: Manifest, sid: str, spec: SampleSpec) -> np.ndarray:
+    """A scene's depth (mm) at ``spec``'s size, (1,H,W), resampled as :func:`load_scene` does."""
+    return _resize(_full_depth(m, sid)[None], spec.height_px, spec.width_px, "nearest-exact")
+
+
 def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]:
     """Raw arrays of one scene at ``spec``'s size: fringes (S,H,W) linear intensity,
     depth_mm (1,H,W), lit (S,H,W) bool, the subsets shadowed and unlit (1,H,W) bool over every
@@ -175,11 +193,7 @@ def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]
 
     fd = d / FRINGE_DIR
     fringes = np.stack([fringe(fd / fringe_name(v, spec.frequency, spec.step)) for v in spec.views])
-    depth = image(d / DEPTH_FILE, DEPTH_CHANNEL)
-    if not np.isfinite(depth).all():
-        raise DataError(
-            f"{d / DEPTH_FILE}: {int((~np.isfinite(depth)).sum())} non-finite depth values"
-        )
+    depth = _full_depth(m, sid)
     # every projector's lit mask: the metric subsets never depend on the model's views
     lit_all = _read(d / LIT_FILE, list(m.views))
     lit_every = np.stack([lit_all[v] for v in m.views]) > 0.5

@@ -263,16 +263,30 @@ def simulate(s: SimSettings, workers: int | None = None, progress: bool = True) 
     elif s.out.exists() and any(s.out.iterdir()):
         raise SimulationError(f"{s.out}: folder exists, is not empty and has no {MANIFEST}")
     scenes_dir = s.out / "scenes"
+    todo = [i for i in range(s.scenes) if not (scenes_dir / scene_id(i)).is_dir()]
+    skipped = s.scenes - len(todo)
+    # specs are drawn before anything is written, so a bad mesh file leaves no folder behind
+    cache: dict = {}
+    specs = {i: draw_scene_spec(s, i, cache) for i in todo}
+    workers = max(1, min(workers or os.cpu_count() or 1, len(todo) or 1))
+    need = scene_bytes_bound(s) * len(todo)
+    big = need > BIG_JOB_BYTES
+    if todo:
+        check_disk(s.out, need, len(todo), announce=big)
     scenes_dir.mkdir(parents=True, exist_ok=True)
     for stale in scenes_dir.glob(f"{PARTIAL_PREFIX}*"):
         shutil.rmtree(stale)  # left by an interrupted run
     manifest.write()
-    todo = [i for i in range(s.scenes) if not (scenes_dir / scene_id(i)).is_dir()]
-    # specs are drawn here, so a bad mesh file fails before any worker starts
-    cache: dict = {}
-    specs = {i: draw_scene_spec(s, i, cache) for i in todo}
-    workers = max(1, min(workers or os.cpu_count() or 1, len(todo) or 1))
     t0 = time.perf_counter()
+    if big and len(todo) > 1:  # time one scene, then say how long the rest will take
+        first = todo.pop(0)
+        render_and_write(s, first, specs[first])
+        per_scene = time.perf_counter() - t0
+        print(
+            f"first scene: {per_scene:.1f} s; the other {len(todo)} take about "
+            f"{_duration(per_scene * len(todo) / workers)} with {workers} workers",
+            flush=True,
+        )
     columns = (TextColumn("rendering"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with Progress(*columns, disable=not progress) as bar:
         task = bar.add_task("scenes", total=len(todo))
@@ -288,5 +302,50 @@ def simulate(s: SimSettings, workers: int | None = None, progress: bool = True) 
                 for _ in pool.map(_worker, [(s, i, specs[i]) for i in todo]):
                     bar.advance(task)
     seconds = time.perf_counter() - t0
+    rendered = s.scenes - skipped
     per_scene = len(manifest.fringe_files(scene_id(0)))
-    return SimReport(len(todo), s.scenes - len(todo), seconds, per_scene * len(todo))
+    return SimReport(rendered, skipped, seconds, per_scene * rendered)
+
+
+#: Jobs whose files may exceed this print their size, time and the free disk space first.
+BIG_JOB_BYTES = 2 * 1024**3
+
+
+def scene_bytes_bound(s: SimSettings) -> int:
+    """Bytes of one scene's files before compression: an upper bound, as the fringes'
+    photon noise leaves lossless compression little to gain."""
+    pixels = s.height_px * s.width_px
+    n_views = len(s.views)
+    f = s.fringe
+    per_view = len(f.periods_px) * f.steps + int(f.uniform) if s.images == "full" else 1
+    fringes = n_views * per_view * pixels * np.dtype(s.fringe_dtype).itemsize
+    # depth (float32), lit and footprint masks (float16 per view), projector coordinate (float32)
+    return fringes + pixels * (4 + n_views * (2 + 2 + 4))
+
+
+def check_disk(out: Path, need_bytes: int, scenes: int, announce: bool) -> None:
+    """Refuse a job that the disk under ``out`` cannot hold; announce a big one."""
+    probe = out
+    while not probe.exists():
+        probe = probe.parent
+    free = shutil.disk_usage(probe).free
+    if need_bytes > free:
+        raise SimulationError(
+            f"{out}: {scenes} scenes need up to {_size(need_bytes)} but only "
+            f"{_size(free)} are free there (choose another out=, fewer scenes, "
+            "images=training or fringe_dtype=float16)"
+        )
+    if announce:
+        print(
+            f"{out}: {scenes} scenes, up to {_size(need_bytes)} "
+            f"({_size(need_bytes / scenes)} each); {_size(free)} free",
+            flush=True,
+        )
+
+
+def _size(n_bytes: float) -> str:
+    return f"{n_bytes / 1e9:.1f} GB" if n_bytes >= 1e9 else f"{n_bytes / 1e6:.1f} MB"
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds / 3600:.1f} h" if seconds >= 3600 else f"{seconds / 60:.0f} min"
