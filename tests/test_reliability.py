@@ -211,7 +211,8 @@ def test_simulate_refuses_a_job_the_disk_cannot_hold(tmp_path, monkeypatch):
     out = tmp_path / "big"
     full = writer.shutil.disk_usage(tmp_path)
     monkeypatch.setattr(writer.shutil, "disk_usage", lambda p: full._replace(free=10**6))
-    with pytest.raises(SimulationError, match=r"big: 3 scenes need up to [0-9.]+ MB but only 1.0 MB are free"):
+    refusal = r"big: 3 scenes need up to [0-9.]+ MB but only 1.0 MB are free"
+    with pytest.raises(SimulationError, match=refusal):
         simulate(SimSettings(out=out, scenes=3, height_px=64, width_px=64), progress=False)
     assert not out.exists()  # refused before anything was written
 
