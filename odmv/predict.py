@@ -1,5 +1,8 @@
 """Depth from your own fringe images: ``python -m odmv.predict ckpt_path=PATH input=PATH``.
 
+``ckpt_path`` is a training checkpoint (run by PyTorch) or a ``model.onnx`` written by
+``python -m odmv.export`` (run by ONNX Runtime); both give the same outputs.
+
 ``input`` is either a scene folder of a dataset (``DATASET/scenes/<id>``, calibration from its
 manifest) or a folder holding one image per view named ``<view>.exr`` (e.g. ``right.exr``,
 ``up.exr``; channel ``Y`` or the only channel), linear intensity like the training data, with
@@ -10,6 +13,9 @@ run folder).
 
 from __future__ import annotations
 
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import hydra
@@ -20,7 +26,9 @@ from omegaconf import DictConfig
 import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.cli import run_app
 from odmv.data.dataset import DataError, SampleSpec, load_scene
+from odmv.data.normalize import Normalization
 from odmv.data.reference import network_input, reference_mode, reference_phase
+from odmv.export import METADATA_KEY
 from odmv.io.exr import ExrError, read_exr, write_exr
 from odmv.io.manifest import MANIFEST, load_manifest
 from odmv.module import load_module
@@ -89,26 +97,85 @@ def write_ply(path: Path, points: np.ndarray) -> Path:
     return path
 
 
+@dataclass
+class Predictor:
+    """A trained net with what it needs to turn images into depth: its views in order, input
+    size (H, W), normalization and input settings, and ``run``: net input -> depth (mm)."""
+
+    views: list[str]
+    size: tuple[int, int]
+    norm: Normalization
+    input_spec: dict
+    run: Callable[[torch.Tensor], np.ndarray]
+
+    def inputs(self, fringes: np.ndarray, rig: Rig) -> torch.Tensor:
+        """The net's input (1 x C x H x W) from linear-intensity images (S x H x W)."""
+        x = self.norm.fringes(torch.from_numpy(np.ascontiguousarray(fringes, np.float32)))
+        spec = self.input_spec
+        mode = reference_mode(spec.get("reference"))
+        if mode:  # the reference-plane phase from the rig's calibration
+            ref = reference_phase(
+                rig, self.views, *self.size, spec["period_px"], spec["step"], spec["n_steps"]
+            )
+            x = network_input(x, torch.from_numpy(ref), mode)
+        return x[None]
+
+
+def load_predictor(path: str | Path) -> Predictor:
+    """A checkpoint (``.ckpt``, run by PyTorch) or an exported ``.onnx`` (run by ONNX Runtime,
+    on CUDA where available)."""
+    if Path(path).suffix == ".onnx":
+        return _onnx_predictor(Path(path))
+    module = load_module(path).eval()
+    res = (module.hparams.data_cfg or {}).get("resolution", 480)
+
+    def run(x: torch.Tensor) -> np.ndarray:
+        with torch.no_grad():
+            return module.depth_mm(module(x)).numpy().astype(np.float32)
+
+    return Predictor(
+        list(module.hparams.views),
+        (res, res) if isinstance(res, int) else tuple(res),
+        module.norm,
+        dict(module.hparams.get("input_spec") or {}),
+        run,
+    )
+
+
+def _onnx_predictor(path: Path) -> Predictor:
+    import onnxruntime as ort
+
+    if not path.is_file():
+        raise ValueError(f"{path}: no such ONNX model")
+    try:
+        session = ort.InferenceSession(str(path), providers=ort.get_available_providers())
+    except Exception as e:  # ONNX Runtime's own errors (a damaged or foreign file)
+        raise ValueError(f"{path}: not a readable ONNX model ({str(e).splitlines()[0]})") from None
+    meta = session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
+    if meta is None:
+        raise ValueError(f"{path}: no odmv metadata (export it with python -m odmv.export)")
+    meta = json.loads(meta)
+
+    def run(x: torch.Tensor) -> np.ndarray:
+        return session.run(None, {"inputs": x.numpy()})[0]
+
+    return Predictor(
+        meta["views"],
+        tuple(meta["input_size"]),
+        Normalization(**meta["norm"]),
+        meta["input_spec"],
+        run,
+    )
+
+
 def predict(cfg: DictConfig) -> dict[str, Path]:
-    module = load_module(cfg.ckpt_path).eval()
-    views = list(module.hparams.views)
-    data_cfg = module.hparams.data_cfg or {}
-    res = data_cfg.get("resolution", 480)
-    size = (res, res) if isinstance(res, int) else tuple(res)
-    fringes, rig = read_inputs(Path(cfg.input), views, size, cfg.manifest)
-    x = module.norm.fringes(torch.from_numpy(np.ascontiguousarray(fringes)))
-    spec = module.hparams.get("input_spec") or {}
-    mode = reference_mode(spec.get("reference"))
-    if mode:  # the reference-plane phase from the rig's calibration
-        ref = reference_phase(rig, views, *size, spec["period_px"], spec["step"], spec["n_steps"])
-        x = network_input(x, torch.from_numpy(ref), mode)
-    x = x[None]
-    with torch.no_grad():
-        depth_mm = module.depth_mm(module(x))[0, 0].numpy().astype(np.float32)
+    predictor = load_predictor(cfg.ckpt_path)
+    fringes, rig = read_inputs(Path(cfg.input), predictor.views, predictor.size, cfg.manifest)
+    depth_mm = predictor.run(predictor.inputs(fringes, rig))[0, 0].astype(np.float32)
     out = Path(cfg.out or cfg.paths.output_dir)
     depth_path = write_exr(out / "depth.exr", {"Z": depth_mm})
-    cam = rig.camera_at(size[1], size[0])
-    ply_path = write_ply(out / "points.ply", point_cloud(depth_mm, cam))
+    h, w = predictor.size
+    ply_path = write_ply(out / "points.ply", point_cloud(depth_mm, rig.camera_at(w, h)))
     return {"depth": depth_path, "points": ply_path}
 
 
