@@ -107,7 +107,8 @@ def classical_row(
     for subset in SUBSETS:
         suffix = subset_suffix(subset)
         for name, value in metrics[subset].compute().items():
-            out[f"test/{name}{suffix}"] = float(value)
+            if name != "pixels":
+                out[f"test/{name}{suffix}"] = float(value)
         out[f"test/coverage{suffix}"] = covered[subset][0] / max(covered[subset][1], 1.0)
         if subset != "all":
             out[f"test/share{suffix}"] = covered[subset][1] / max(valid_pixels, 1.0)

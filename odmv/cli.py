@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import TypeVar
 
 from hydra.errors import InstantiationException
+from lightning.pytorch.utilities import rank_zero_only
 from omegaconf.errors import OmegaConfBaseException
 
 T = TypeVar("T")
@@ -77,7 +78,8 @@ def run_app(fn: Callable[[], T], run_dir: str | os.PathLike | None = None) -> T 
         if os.environ.get("HYDRA_FULL_ERROR") == "1":
             raise
         line = _one_line(exc)
-        print(f"error: {line}", file=sys.stderr)
+        if rank_zero_only.rank == 0:  # DDP ranks fail alike; one line is enough
+            print(f"error: {line}", file=sys.stderr)
         remove_if_empty(Path(run_dir) if run_dir else None)
         if _in_multirun():
             return JobFailed(line)
@@ -95,3 +97,9 @@ def task_overrides() -> list[str]:
     from hydra.core.hydra_config import HydraConfig
 
     return list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
+
+
+def rank_zero_print(text: str) -> None:
+    """Print once, from the first process of a multi-process (DDP) run."""
+    if rank_zero_only.rank == 0:
+        print(text, flush=True)

@@ -51,6 +51,17 @@ def first_set(*values):
     return next((v for v in values if v is not None), None)
 
 
+def on_gpu(accelerator) -> bool:
+    """Whether a trainer with this accelerator runs on GPUs (SyncBatchNorm needs them)."""
+    if str(accelerator) in ("gpu", "cuda"):
+        return True
+    if str(accelerator) == "auto":
+        import torch
+
+        return torch.cuda.is_available()
+    return False
+
+
 def csv_list(values) -> str:
     """[0, 1] -> "0,1": a list as a Hydra sweep value (sweep configs' seeds)."""
     return ",".join(str(v) for v in values)
@@ -59,6 +70,7 @@ def csv_list(values) -> str:
 for _name, _fn in (
     ("odmv.csv", csv_list),
     ("odmv.first", first_set),
+    ("odmv.on_gpu", on_gpu),
     ("odmv.view_channels", view_channels),
     ("odmv.in_channels", in_channels),
     ("odmv.views", view_list),

@@ -36,7 +36,7 @@ def constant_predictor_errors(dm, value_mm: float) -> dict[str, float]:
         metric.update(
             torch.full_like(batch["depth_mm"], value_mm), batch["depth_mm"], batch["valid"]
         )
-    return {k: float(v) for k, v in metric.compute().items()}
+    return {k: float(v) for k, v in metric.compute().items() if k != "pixels"}
 
 
 def family_errors(out_dir: Path, const_mm: float) -> dict[str, float]:

@@ -65,14 +65,33 @@ def metadata(module: FPPModule, ckpt_path: str | Path) -> dict:
     }
 
 
+def export_graph(model: torch.nn.Module, example: torch.Tensor):
+    """The ONNX ModelProto of ``model`` (input ``inputs`` with a dynamic batch, output
+    ``depth_mm``), traced with ``example``; the exporter's chatter silenced."""
+    for name in ("torch.onnx", "onnxscript", "onnx_ir"):  # notes on its own passes
+        logging.getLogger(name).setLevel(logging.ERROR)
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")
+        program = torch.onnx.export(
+            model,
+            (example,),
+            input_names=["inputs"],
+            output_names=["depth_mm"],
+            dynamic_shapes={"inputs": {0: torch.export.Dim("batch", min=1, max=1024)}},
+            opset_version=OPSET,
+            dynamo=True,
+            external_data=False,
+            verbose=False,
+        )
+    return program.model_proto
+
+
 def export_onnx(ckpt_path: str | Path, out_dir: str | Path) -> tuple[Path, float]:
     """Write ``out_dir/model.onnx``; returns its path and the largest difference (mm) between
     ONNX Runtime and PyTorch on two random inputs (a check, printed by the app)."""
     import onnx
     import onnxruntime as ort
 
-    for name in ("torch.onnx", "onnxscript", "onnx_ir"):  # the exporter's notes on its passes
-        logging.getLogger(name).setLevel(logging.ERROR)
     module = load_module(ckpt_path).eval()
     if module.norm is None or not module.hparams.views:
         raise ValueError(
@@ -85,20 +104,7 @@ def export_onnx(ckpt_path: str | Path, out_dir: str | Path) -> tuple[Path, float
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "model.onnx"
     tmp = out_dir / f".model.onnx.{os.getpid()}.tmp"
-    with warnings.catch_warnings(), torch.no_grad():
-        warnings.simplefilter("ignore")  # the exporter's notes on its own internals
-        program = torch.onnx.export(
-            wrapper,
-            (example,),
-            input_names=["inputs"],
-            output_names=["depth_mm"],
-            dynamic_shapes={"inputs": {0: torch.export.Dim("batch", min=1, max=1024)}},
-            opset_version=OPSET,
-            dynamo=True,
-            external_data=False,
-            verbose=False,
-        )
-    model = program.model_proto
+    model = export_graph(wrapper, example)
     entry = model.metadata_props.add()
     entry.key, entry.value = METADATA_KEY, json.dumps(metadata(module, ckpt_path))
     onnx.save(model, tmp)

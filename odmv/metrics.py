@@ -76,11 +76,14 @@ class DepthErrors(Metric):
         self.images += has.sum()
 
     def compute(self) -> dict[str, torch.Tensor]:
+        """MAE, MSE, RMSE and the pixel count, over every process of a DDP run (torchmetrics
+        sums the states only inside compute(), so the count is read here too)."""
         nan = torch.tensor(float("nan"), dtype=torch.float64, device=self.pixels.device)
         if self.pixels == 0:
-            return {"mae_mm": nan, "mse_mm2": nan, "rmse_mm": nan}
+            return {"mae_mm": nan, "mse_mm2": nan, "rmse_mm": nan, "pixels": self.pixels.clone()}
         return {
             "mae_mm": self.abs_sum / self.pixels,
             "mse_mm2": self.sq_sum / self.pixels,
             "rmse_mm": self.rmse_sum / self.images,
+            "pixels": self.pixels.clone(),
         }

@@ -106,7 +106,14 @@ class FPPModule(L.LightningModule):
         bs = batch["fringes"].shape[0]
         self.log("train/loss", terms["loss"], prog_bar=True, batch_size=bs)
         # the epoch mean draws a curve even when an epoch is shorter than log_every_n_steps
-        self.log("train/loss_epoch", terms["loss"], on_step=False, on_epoch=True, batch_size=bs)
+        self.log(
+            "train/loss_epoch",
+            terms["loss"],
+            on_step=False,
+            on_epoch=True,
+            sync_dist=True,
+            batch_size=bs,
+        )
         for k, v in terms.items():
             if k != "loss":
                 self.log(f"train/loss_{k}", v, batch_size=bs)
@@ -151,16 +158,18 @@ class FPPModule(L.LightningModule):
             self._predictions.setdefault(key, []).append(value)
 
     def _log_metrics(self, stage: str) -> None:
-        valid = self.metrics[f"{stage}_all"].pixels
-        for subset in SUBSETS:
-            metric = self.metrics[f"{stage}_{subset}"]
+        # compute() sums over ranks, so every rank logs the same values (sync_dist keeps them)
+        results = {subset: self.metrics[f"{stage}_{subset}"].compute() for subset in SUBSETS}
+        valid = results["all"]["pixels"]
+        for subset, values in results.items():
             suffix = subset_suffix(subset)
-            for name, value in metric.compute().items():
-                self.log(f"{stage}/{name}{suffix}", value.float(), sync_dist=False)
+            pixels = values.pop("pixels")
+            for name, value in values.items():
+                self.log(f"{stage}/{name}{suffix}", value.float(), sync_dist=True)
             if subset != "all":  # the subset's share of the valid pixels
-                share = metric.pixels / valid.clamp_min(1)
-                self.log(f"{stage}/share{suffix}", share.float(), sync_dist=False)
-            metric.reset()
+                share = pixels / valid.clamp_min(1)
+                self.log(f"{stage}/share{suffix}", share.float(), sync_dist=True)
+            self.metrics[f"{stage}_{subset}"].reset()
 
     def on_validation_epoch_end(self):
         self._log_metrics("val")
@@ -170,8 +179,12 @@ class FPPModule(L.LightningModule):
 
     def on_test_epoch_end(self):
         self._log_metrics("test")
-        if self.test_dir is not None and self._scene_rows:
-            write_test_outputs(Path(self.test_dir), self._scene_rows, self._predictions)
+        if self.test_dir is not None:
+            rows, predictions = self._scene_rows, self._predictions
+            if self.trainer.world_size > 1:  # every rank tested its share of the scenes
+                rows, predictions = _gather(rows), _gather_lists(predictions)
+            if rows:
+                write_test_outputs(Path(self.test_dir), rows, predictions)
 
     # ---------------------------------------------------------------- optimisation
     def configure_optimizers(self):
@@ -261,20 +274,35 @@ SCENES_CSV = "test_scenes.csv"
 PREDICTIONS = "test_predictions.npz"
 
 
+def _gather(items: list) -> list:
+    """Every rank's list, concatenated in rank order (picklable items)."""
+    parts = [None] * torch.distributed.get_world_size()
+    torch.distributed.all_gather_object(parts, items)
+    return [x for part in parts for x in part]
+
+
+def _gather_lists(lists: dict[str, list]) -> dict[str, list]:
+    return {k: _gather(lists.get(k, [])) for k in ("scene_id", "pred_mm", "depth_mm")}
+
+
 @rank_zero_only
 def write_test_outputs(folder: Path, rows: list[dict], predictions: dict[str, list]) -> None:
-    """Per-scene metrics (CSV) and the test predictions in mm (npz), each written atomically."""
+    """Per-scene metrics (CSV) and the test predictions in mm (npz), each written atomically,
+    in scene order (the same files however many processes tested)."""
     folder.mkdir(parents=True, exist_ok=True)
+    rows = sorted({r["scene"]: r for r in rows}.values(), key=lambda r: r["scene"])
     tmp = folder / f".{SCENES_CSV}.{os.getpid()}.tmp"
     with tmp.open("w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
     os.replace(tmp, folder / SCENES_CSV)
+    ids = np.array([s for chunk in predictions["scene_id"] for s in chunk])
+    _, order = np.unique(ids, return_index=True)  # scene order, each scene once
     arrays = {
-        "scene_id": np.array([s for chunk in predictions["scene_id"] for s in chunk]),
-        "pred_mm": np.concatenate(predictions["pred_mm"]).astype(np.float32),
-        "depth_mm": np.concatenate(predictions["depth_mm"]).astype(np.float32),
+        "scene_id": ids[order],
+        "pred_mm": np.concatenate(predictions["pred_mm"]).astype(np.float32)[order],
+        "depth_mm": np.concatenate(predictions["depth_mm"]).astype(np.float32)[order],
     }
     tmp = folder / f".{PREDICTIONS}.{os.getpid()}.tmp.npz"
     np.savez_compressed(tmp, **arrays)

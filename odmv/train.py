@@ -17,7 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.checkpoint import check_fits, check_weights, read_checkpoint
-from odmv.cli import JobFailed, remove_if_empty, run_app, task_overrides
+from odmv.cli import JobFailed, rank_zero_print, remove_if_empty, run_app, task_overrides
 from odmv.module import FPPModule, write_json
 from odmv.simulate import CONF_DIR
 from odmv.sweep import append_row
@@ -118,7 +118,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     ckpt = read_checkpoint(cfg.ckpt_path) if cfg.ckpt_path else None
     if ckpt is not None and (run := run_folder_of(cfg.ckpt_path)) is not None:
         cfg.paths.output_dir = str(run)
-        print(f"continuing {run} from epoch {ckpt.get('epoch', 0) + 1}", flush=True)
+        rank_zero_print(f"continuing {run} from epoch {ckpt.get('epoch', 0) + 1}")
     out_dir = Path(cfg.paths.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     dm, module, trainer = build(cfg)
@@ -128,7 +128,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
     t0 = time.perf_counter()
     trainer.fit(module, datamodule=dm, ckpt_path=cfg.ckpt_path, weights_only=True)
     train_seconds = time.perf_counter() - t0
-    dm.save_split(out_dir / "split.json")
+    if trainer.is_global_zero:  # DDP: one process writes the run's files
+        dm.save_split(out_dir / "split.json")
     metrics: dict = {}
     if cfg.test:
         best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
@@ -148,11 +149,12 @@ def train(cfg: DictConfig) -> dict[str, float]:
             dataset=str(Path(dm.root).resolve()),
             overrides=" ".join(overrides),
         )
-        write_json(out_dir / "metrics.json", metrics)
-        append_row(
-            out_dir / "metrics.csv",
-            {k: v for k, v in metrics.items() if not isinstance(v, list)},
-        )
+        if trainer.is_global_zero:
+            write_json(out_dir / "metrics.json", metrics)
+            append_row(
+                out_dir / "metrics.csv",
+                {k: v for k, v in metrics.items() if not isinstance(v, list)},
+            )
     return metrics
 
 
@@ -161,6 +163,7 @@ def main(cfg: DictConfig) -> dict[str, float]:
     hydra_dir = Path(cfg.paths.output_dir)
 
     def body() -> tuple[DictConfig, dict]:
+        check_launch(cfg)
         run_cfg = resumed_config(cfg, task_overrides()) if cfg.get("resume") else cfg
         return run_cfg, train(run_cfg)
 
@@ -171,13 +174,29 @@ def main(cfg: DictConfig) -> dict[str, float]:
     out = Path(run_cfg.paths.output_dir)
     if out.resolve() != hydra_dir.resolve():  # continued another run's folder
         remove_if_empty(hydra_dir)
-    print(f"run folder: {out}\n  TensorBoard: tensorboard --logdir {out / 'tensorboard'}")
+    rank_zero_print(f"run folder: {out}\n  TensorBoard: tensorboard --logdir {out / 'tensorboard'}")
     if metrics:
-        print(
+        rank_zero_print(
             "  test: "
             + ", ".join(f"{k}={v:.4f}" for k, v in metrics.items() if k.startswith("test/"))
         )
     return metrics
+
+
+def check_launch(cfg: DictConfig) -> None:
+    """Refuse a multirun of multi-process DDP jobs in one process tree: each job's ranks would
+    be started by a job of the sweep (use a cluster launcher, docs/training.md)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized() or str(HydraConfig.get().mode) != "RunMode.MULTIRUN":
+        return
+    strategy, devices = str(cfg.trainer.get("strategy", "")), cfg.trainer.get("devices", 1)
+    local = "BasicLauncher" in str(HydraConfig.get().launcher.get("_target_", ""))
+    if strategy.startswith("ddp") and devices not in (1, "1") and local:
+        raise ValueError(
+            "trainer=ddp: not with -m on the local launcher; sweep on SLURM with "
+            "hydra/launcher=slurm, or run the jobs one at a time"
+        )
 
 
 if __name__ == "__main__":

@@ -10,8 +10,10 @@ from pathlib import Path
 import lightning as L
 import numpy as np
 import torch
+import torch.distributed as dist
+from lightning.pytorch.overrides.distributed import UnrepeatedDistributedSampler
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
-from torch.utils.data import ConcatDataset
+from torch.utils.data import ConcatDataset, DistributedSampler
 
 from odmv.data.cache import ArrayCache
 from odmv.data.dataset import (
@@ -227,10 +229,21 @@ class FPPDataModule(L.LightningDataModule):
                 f"data: the {split} split of {self.root} is empty; add scenes or "
                 "change data.split_fractions"
             )
+        sampler = None
+        if split != "train" and dist.is_available() and dist.is_initialized():
+            # DDP: each rank gets its share of the scenes, none twice (Lightning's default
+            # sampler pads with repeats, which the metrics would count twice). A split smaller
+            # than the number of ranks is evaluated whole by every rank: the metrics' sums
+            # then grow alike, so every mean is the same as from one process.
+            if len(ds) >= dist.get_world_size():
+                sampler = UnrepeatedDistributedSampler(ds, shuffle=False)
+            else:
+                sampler = DistributedSampler(ds, num_replicas=1, rank=0, shuffle=False)
         return torch.utils.data.DataLoader(
             ds,
             batch_size=self.batch_size if split == "train" else self.eval_batch_size,
             shuffle=shuffle,
+            sampler=sampler,
             num_workers=self.num_workers,
             persistent_workers=self.num_workers > 0,
             drop_last=False,

@@ -1,0 +1,122 @@
+"""Training-step time and peak memory of a preset's net: forward, composite loss, backward,
+gradient clipping and an Adam step on a synthetic batch of the preset's shapes.
+
+    python experiments/bench_train.py --preset paper --model odmvnet            # 480 px, batch 2
+    python experiments/bench_train.py --preset paper --device cuda --precision bf16-mixed \\
+        --channels-last --cudnn-benchmark --compile
+    python experiments/bench_train.py --preset quickstart --steps 20            # the demo's net
+
+Prints the median step time over --steps steps after --warmup steps, samples/s, and peak
+memory (CUDA: max allocated; CPU: peak RSS of this process). Any training override goes after
+--set, e.g. --set views=2 data.resolution=256 model.net.activation_checkpointing=true.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from odmv.bench import (
+    PRESETS,
+    build_module,
+    input_size,
+    peak_memory,
+    percentile,
+    preset_config,
+    sync,
+    synthetic_batch,
+)
+from odmv.cli import quiet_lightning
+from odmv.losses import LossWeights, composite_loss
+from odmv.module import net_input
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--preset", default="paper", choices=PRESETS)
+    ap.add_argument("--model", default="odmvnet", help="odmvnet, unet, hnet, uhrnet or mtlnet")
+    ap.add_argument("--batch", type=int, default=None, help="default: the preset's batch size")
+    ap.add_argument("--resolution", type=int, default=None, help="default: the preset's size")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--precision", default="32", choices=("32", "bf16-mixed", "16-mixed"))
+    ap.add_argument("--channels-last", action="store_true", help="channels_last(_3d) memory")
+    ap.add_argument("--compile", action="store_true", help="torch.compile the net")
+    ap.add_argument("--compile-mode", default="max-autotune-no-cudagraphs")
+    ap.add_argument("--cudnn-benchmark", action="store_true")
+    ap.add_argument("--checkpointing", action="store_true", help="activation checkpointing")
+    ap.add_argument("--steps", type=int, default=10)
+    ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--set", nargs="*", default=[], help="more training overrides")
+    args = ap.parse_args()
+    quiet_lightning()  # the deprecation notes Lightning and torch.export raise
+
+    overrides = list(args.set)
+    if args.resolution:
+        overrides.append(f"data.resolution={args.resolution}")
+    if args.checkpointing:
+        overrides.append("model.net.activation_checkpointing=true")
+    cfg = preset_config(args.preset, args.model, overrides)
+    batch_size = args.batch or cfg.data.batch_size
+    device = torch.device(args.device)
+    torch.backends.cudnn.benchmark = args.cudnn_benchmark
+    module = build_module(cfg).to(device).train()
+    if args.channels_last:
+        module = module.to(memory_format=torch.channels_last_3d)
+    net = torch.compile(module.net, mode=args.compile_mode) if args.compile else module.net
+    weights = LossWeights(**cfg.loss)
+    opt = torch.optim.Adam(module.parameters(), lr=1e-4)
+    batch = synthetic_batch(cfg, batch_size, device)
+    dtype = {"bf16-mixed": torch.bfloat16, "16-mixed": torch.float16}.get(args.precision)
+    scaler = torch.amp.GradScaler(device.type, enabled=args.precision == "16-mixed")
+
+    def step() -> None:
+        with torch.autocast(device.type, dtype=dtype, enabled=dtype is not None):
+            loss = composite_loss(net(net_input(batch)), batch, weights)["loss"]
+        scaler.scale(loss).backward()
+        scaler.unscale_(opt)
+        torch.nn.utils.clip_grad_norm_(module.parameters(), 1.0)
+        scaler.step(opt)
+        scaler.update()
+        opt.zero_grad(set_to_none=True)
+
+    for _ in range(args.warmup):
+        step()
+    sync(device)
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    times = []
+    for _ in range(args.steps):
+        t0 = time.perf_counter()
+        step()
+        sync(device)
+        times.append(time.perf_counter() - t0)
+    h, w = input_size(cfg)
+    median = statistics.median(times)
+    switches = [
+        name
+        for name, on in (
+            ("channels_last", args.channels_last),
+            (f"compile({args.compile_mode})", args.compile),
+            ("cudnn.benchmark", args.cudnn_benchmark),
+            ("activation checkpointing", args.checkpointing),
+        )
+        if on
+    ]
+    params = sum(p.numel() for p in module.net.parameters())
+    print(
+        f"{args.model} ({params / 1e6:.1f} M parameters), preset {args.preset}, "
+        f"{len(cfg.data.views)} views, {h}x{w}, batch {batch_size}, {args.precision}, "
+        f"{device}{', ' + ', '.join(switches) if switches else ''}:\n"
+        f"  step {median * 1e3:.1f} ms median (p95 {percentile(times, 95) * 1e3:.1f} ms, "
+        f"{args.steps} steps after {args.warmup}), {batch_size / median:.2f} samples/s, "
+        f"{peak_memory(device)}"
+    )
+
+
+if __name__ == "__main__":
+    main()
