@@ -1,84 +1,166 @@
-"""Depth from your own fringe images: ``python -m odmv.predict ckpt_path=PATH input=PATH``.
+"""Depth from fringe images: ``python -m odmv.predict ckpt_path=PATH input=PATH``.
 
 ``ckpt_path`` is a training checkpoint (run by PyTorch) or a ``model.onnx`` written by
-``python -m odmv.export`` (run by ONNX Runtime); both give the same outputs.
+``python -m odmv.export`` (run by ONNX Runtime); both give the same outputs. ``method=psp``
+instead reconstructs classically from full phase-shift sequences (odmv.classical), no net.
 
-``input`` is either a scene folder of a dataset (``DATASET/scenes/<id>``, calibration from its
-manifest) or a folder holding one image per view named ``<view>.exr`` (e.g. ``right.exr``,
-``up.exr``; channel ``Y`` or the only channel), linear intensity like the training data, with
-the rig from ``manifest=PATH`` or the default rig. Writes ``depth.exr`` (channel Z, camera-axis
-z in mm) and ``points.ply`` (one point per pixel, camera frame, mm) into ``out`` (default: the
-run folder).
+``input`` is one scene or many: a dataset scene folder (``DATASET/scenes/<id>``, calibration
+from its manifest), a folder of one image per view (``right.png``, ``up.tif``, ...: EXR, PNG,
+TIFF, BMP or NPY; odmv.io.images), a folder of such folders, or a glob. For each scene it
+writes ``depth.exr`` (channel Z, camera-axis depth in mm, with unit and provenance in the
+header), ``depth.png`` (a preview) and ``points.ply`` (camera frame, mm; valid pixels only,
+and with ``drop_unlit`` only pixels some projector lights) into ``out`` (several scenes: one
+sub-folder each). The intensity scale and any resizing are printed, never silent.
 """
 
 from __future__ import annotations
 
+import glob
 import json
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import hydra
+import matplotlib
 import numpy as np
 import torch
 from omegaconf import DictConfig
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
+from odmv.classical import reconstruct_scene
 from odmv.cli import run_app
-from odmv.data.dataset import DataError, SampleSpec, load_scene
+from odmv.data.dataset import DataError, SampleSpec, check_spec, load_scene
 from odmv.data.normalize import Normalization
 from odmv.data.reference import network_input, reference_mode, reference_phase
 from odmv.export import METADATA_KEY
-from odmv.io.exr import ExrError, read_exr, write_exr
-from odmv.io.manifest import MANIFEST, load_manifest
+from odmv.fpp import period_in_camera_px
+from odmv.io.exr import write_exr
+from odmv.io.images import IMAGE_EXTENSIONS, find_view_image, fit_to, read_image
+from odmv.io.manifest import MANIFEST, FringeSpec, Manifest, fringe_name, load_manifest
 from odmv.module import load_module
-from odmv.rig import Camera, Rig
+from odmv.rig import VIEW_NAMES, Camera, Rig
 from odmv.simulate import CONF_DIR
 
-
-def _resize_area(a: np.ndarray, h: int, w: int) -> np.ndarray:
-    t = torch.from_numpy(np.ascontiguousarray(a, np.float32))[None]
-    return torch.nn.functional.interpolate(t, size=(h, w), mode="area")[0].numpy()
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
 
 
-def read_inputs(path: Path, views: list[str], size: tuple[int, int], manifest: str | None):
-    """(fringes S x H x W linear intensity at ``size``, rig) from a scene or an image folder."""
+@dataclass(frozen=True)
+class Scene:
+    """One input scene: a dataset scene (``manifest`` set) or a folder of view images."""
+
+    folder: Path
+    manifest: Manifest | None = None
+
+    @property
+    def name(self) -> str:
+        return self.folder.name
+
+
+def find_scenes(spec: str, views: list[str]) -> list[Scene]:
+    """The scenes ``input`` names: a scene, a folder of scenes, or a glob of either."""
+    paths = (
+        sorted(Path(p) for p in glob.glob(spec) if Path(p).is_dir())
+        if glob.has_magic(spec)
+        else [Path(spec)]
+    )
+    scenes = []
+    for path in paths:
+        scene = _as_scene(path, views)
+        if scene is not None:
+            scenes.append(scene)
+        elif path.is_dir():
+            scenes += [s for sub in sorted(path.iterdir()) if (s := _as_scene(sub, views))]
+    if not scenes:
+        raise DataError(
+            f"input: {spec}: no scenes (a dataset scene, a folder of <view>.<ext> images such "
+            f"as {views[0]}.png, or a folder of those)"
+        )
+    return scenes
+
+
+def _as_scene(path: Path, views: list[str]) -> Scene | None:
     dataset = path.parent.parent
-    if (dataset / MANIFEST).is_file() and path.parent.name == "scenes":
-        m = load_manifest(dataset)
+    if path.parent.name == "scenes" and (dataset / MANIFEST).is_file() and path.is_dir():
+        return Scene(path, load_manifest(dataset))
+    names = [views[0], fringe_name(views[0], 0, 0).removesuffix(".exr")]
+    if path.is_dir() and any(find_view_image(path, n) for n in names):
+        return Scene(path)
+    return None
+
+
+class ImageReader:
+    """Reads a scene's view images as linear intensity at the network's size, saying once how
+    it scales and resizes them (and again whenever that changes)."""
+
+    def __init__(self, scale: float | None, fit: str):
+        self.scale, self.fit = scale, fit
+        self._said: set[str] = set()
+
+    def _say(self, text: str) -> None:
+        if text not in self._said:
+            self._said.add(text)
+            print(text, flush=True)
+
+    def read(self, folder: Path, stems: list[str], size: tuple[int, int] | None) -> np.ndarray:
+        images = []
+        for stem in stems:
+            path = find_view_image(folder, stem)
+            if path is None:
+                raise DataError(f"{folder}: no image {stem}.<ext> ({', '.join(IMAGE_EXTENSIONS)})")
+            images.append((path, read_image(path)))
+        shapes = {im.data.shape for _, im in images}
+        if len(shapes) != 1:
+            raise DataError(f"{folder}: the view images differ in size {sorted(shapes)}")
+        kinds = {(im.kind, im.full_scale) for _, im in images}
+        kind, full_scale = sorted(kinds)[0]
+        scale = self.scale or full_scale
+        how = "given by scale=" if self.scale else f"{kind}; override with scale="
+        self._say(f"intensity: value / {scale:g} ({how})")
+        stack = np.stack([im.data for _, im in images]) / np.float32(scale)
+        if size is None:
+            return stack
+        stack, note = fit_to(stack, size, self.fit)
+        self._say(f"size: {note}")
+        return stack
+
+
+def network_images(scene: Scene, predictor, reader: ImageReader, rig: Rig) -> np.ndarray:
+    """S x H x W linear-intensity images of the predictor's views at its input size."""
+    if scene.manifest is not None:
+        m = scene.manifest
         spec = SampleSpec(
-            tuple(views),
-            *size,
+            tuple(predictor.views),
+            *predictor.size,
             m.fringe.resolve_frequency(m.fringe.train_frequency),
             m.fringe.train_step,
         )
-        return load_scene(m, path.name, spec)["fringes"], m.rig
-    if not path.is_dir():
-        raise DataError(f"{path}: input must be a scene folder or a folder of <view>.exr images")
-    images = []
-    for v in views:
-        f = path / f"{v}.exr"
-        try:
-            chans = read_exr(f)
-        except ExrError as e:
-            raise DataError(f"{e} (the checkpoint needs views {views})") from None
-        img = chans["Y"] if "Y" in chans else next(iter(chans.values()))
-        if len(chans) > 1 and "Y" not in chans:
-            raise DataError(f"{f}: several channels and none named 'Y'")
-        images.append(img.astype(np.float32))
-    shapes = {a.shape for a in images}
-    if len(shapes) != 1:
-        raise DataError(f"{path}: the view images differ in size {sorted(shapes)}")
-    rig = load_manifest(manifest).rig if manifest else Rig()
-    return _resize_area(np.stack(images), *size), rig
+        return load_scene(m, scene.name, spec)["fringes"]
+    return reader.read(scene.folder, predictor.views, predictor.size)
 
 
-def point_cloud(depth_mm: np.ndarray, cam: Camera) -> np.ndarray:
-    """Camera-frame points (N x 3, mm) of every pixel centre at its depth."""
+def lit_by_any_view(images: np.ndarray, period_camera_px: float, threshold: float) -> np.ndarray:
+    """Pixels some projector lights: the brightest value within one fringe period (so a dark
+    fringe of a lit surface counts as lit) above ``threshold`` (full-scale units) in a view."""
+    k = 2 * int(np.ceil(period_camera_px / 2)) + 1
+    t = torch.from_numpy(np.ascontiguousarray(images, np.float32))[None]
+    peak = torch.nn.functional.max_pool2d(t, k, stride=1, padding=k // 2)[0].numpy()
+    return (peak > threshold).any(0)
+
+
+def point_cloud(depth_mm: np.ndarray, cam: Camera, keep: np.ndarray | None = None) -> np.ndarray:
+    """Camera-frame points (N x 3, mm) of the pixel centres at their depth: pixels with a
+    finite depth, and only those in ``keep`` where given."""
     _, d = cam.centre_rays()
     d_cam = d.reshape(-1, 3) @ cam.R.T  # camera-frame directions
     pts = d_cam / d_cam[:, 2:3] * depth_mm.reshape(-1, 1)
-    return pts[np.isfinite(pts).all(1)]
+    ok = np.isfinite(pts).all(1)
+    if keep is not None:
+        ok &= keep.reshape(-1)
+    return pts[ok]
 
 
 def write_ply(path: Path, points: np.ndarray) -> Path:
@@ -168,22 +250,115 @@ def _onnx_predictor(path: Path) -> Predictor:
     )
 
 
-def predict(cfg: DictConfig) -> dict[str, Path]:
-    predictor = load_predictor(cfg.ckpt_path)
-    fringes, rig = read_inputs(Path(cfg.input), predictor.views, predictor.size, cfg.manifest)
-    depth_mm = predictor.run(predictor.inputs(fringes, rig))[0, 0].astype(np.float32)
-    out = Path(cfg.out or cfg.paths.output_dir)
-    depth_path = write_exr(out / "depth.exr", {"Z": depth_mm})
-    h, w = predictor.size
-    ply_path = write_ply(out / "points.ply", point_cloud(depth_mm, rig.camera_at(w, h)))
-    return {"depth": depth_path, "points": ply_path}
+def write_preview(path: Path, depth_mm: np.ndarray) -> Path:
+    """A colour-mapped PNG of the depth (near = bright), written atomically."""
+    finite = depth_mm[np.isfinite(depth_mm)]
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    tmp = path.with_name(f".{path.name}.tmp")
+    shown = np.nan_to_num(depth_mm, nan=hi)
+    plt.imsave(tmp, shown, cmap="viridis_r", vmin=lo, vmax=hi, format="png")
+    tmp.replace(path)
+    return path
+
+
+def predict(cfg: DictConfig) -> list[dict[str, Path]]:
+    """Depth, preview and point cloud of every scene ``cfg.input`` names; returns their paths."""
+    if cfg.method not in ("net", "psp"):
+        raise ValueError(f"method: {cfg.method!r} unknown; choose net or psp")
+    if cfg.method == "net" and not cfg.ckpt_path:
+        raise ValueError("ckpt_path: give a checkpoint or model.onnx (or method=psp)")
+    predictor = load_predictor(cfg.ckpt_path) if cfg.method == "net" else None
+    views = predictor.views if predictor else list(VIEW_NAMES)
+    scenes = find_scenes(str(cfg.input), views)
+    default_rig = load_manifest(cfg.manifest).rig if cfg.manifest else None
+    if default_rig is None and any(s.manifest is None for s in scenes):
+        print("rig: none given (manifest=PATH); using the paper's default rig", flush=True)
+    reader = ImageReader(cfg.scale, cfg.fit)
+    out_root = Path(cfg.out or cfg.paths.output_dir)
+    results = []
+    t0 = time.perf_counter()
+    columns = (TextColumn("predicting"), BarColumn(), MofNCompleteColumn())
+    with Progress(*columns, disable=not cfg.progress or len(scenes) < 2, transient=True) as bar:
+        task = bar.add_task("scenes", total=len(scenes))
+        for scene in scenes:
+            rig = scene.manifest.rig if scene.manifest else (default_rig or Rig())
+            if predictor is not None:
+                images = network_images(scene, predictor, reader, rig)
+                depth = predictor.run(predictor.inputs(images, rig))[0, 0].astype(np.float32)
+                period = predictor.input_spec.get("period_px")
+            else:
+                depth, images, period = classical_depth(scene, reader, rig, cfg.manifest)
+            h, w = depth.shape
+            cam = rig.camera_at(w, h)
+            keep = None
+            if cfg.drop_unlit and period:
+                proj = rig.projectors()[views[0]]
+                keep = lit_by_any_view(
+                    images, period_in_camera_px(period, cam, proj), cfg.unlit_threshold
+                )
+            out = out_root / scene.name if len(scenes) > 1 else out_root
+            results.append(write_outputs(out, depth, cam, keep, scene, cfg))
+            bar.advance(task)
+    seconds = time.perf_counter() - t0
+    print(
+        f"{len(scenes)} scene(s) in {seconds:.1f} s ({len(scenes) / seconds:.2f} scenes/s) "
+        f"-> {out_root}",
+        flush=True,
+    )
+    return results
+
+
+def classical_depth(scene: Scene, reader: ImageReader, rig: Rig, manifest: str | None):
+    """Phase shifting on every projector's full sequences (odmv.classical.reconstruct_scene):
+    depth at the images' own size, the images (for the lit mask) and the finest period."""
+    m = scene.manifest or (load_manifest(manifest) if manifest else None)
+    fringe = m.fringe if m else FringeSpec()
+    n_f, n_s = len(fringe.periods_px), fringe.steps
+    if scene.manifest is not None:
+        spec = check_spec(m, m.views, [m.height_px, m.width_px], None, None, with_stacks=True)
+        views = list(m.views)
+        stack = load_scene(m, scene.name, spec)["fringe_stack"]
+    else:
+        views = [v for v in VIEW_NAMES if find_view_image(scene.folder, f"{v}_f0_s00")]
+        stems = [
+            fringe_name(v, f, k).removesuffix(".exr")
+            for v in views
+            for f in range(n_f)
+            for k in range(n_s)
+        ]
+        stack = reader.read(scene.folder, stems, None)
+    h, w = stack.shape[-2:]
+    stack = stack.reshape(len(views), n_f, n_s, h, w)
+    projectors = [rig.projectors()[v] for v in views]
+    depth = reconstruct_scene(stack, list(fringe.periods_px), rig.camera_at(w, h), projectors)
+    finest = int(np.argmin(fringe.periods_px))
+    return depth.astype(np.float32), stack[:, finest, 0], float(min(fringe.periods_px))
+
+
+def write_outputs(
+    out: Path, depth: np.ndarray, cam: Camera, keep: np.ndarray | None, scene: Scene, cfg
+) -> dict[str, Path]:
+    attributes = {
+        "unit": "mm",
+        "odmv_quantity": "camera-axis depth z (camera frame)",
+        "odmv_method": str(cfg.method),
+        "odmv_model": str(Path(cfg.ckpt_path).resolve()) if cfg.method == "net" else "psp",
+        "odmv_input": str(scene.folder.resolve()),
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    return {
+        "depth": write_exr(out / "depth.exr", {"Z": depth}, attributes=attributes),
+        "preview": write_preview(out / "depth.png", depth),
+        "points": write_ply(out / "points.ply", point_cloud(depth, cam, keep)),
+    }
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="predict")
 def main(cfg: DictConfig) -> None:
     # a folder the user named is theirs: never removed, even when the prediction fails
-    paths = run_app(lambda: predict(cfg), None if cfg.out else cfg.paths.output_dir)
-    print(f"depth (mm): {paths['depth']}\npoint cloud: {paths['points']}")
+    results = run_app(lambda: predict(cfg), None if cfg.out else cfg.paths.output_dir)
+    if len(results) == 1:
+        print(f"depth (mm): {results[0]['depth']}\npoint cloud: {results[0]['points']}")
 
 
 if __name__ == "__main__":

@@ -56,6 +56,6 @@ def test_onnx_depth_matches_pytorch_and_predict_runs_it(
                 f"paths.output_dir={tmp_path}",
             ],
         )
-        depths[name] = read_channel(predict(cfg)["depth"], "Z")
+        depths[name] = read_channel(predict(cfg)[0]["depth"], "Z")
     assert np.abs(depths["onnx"] - depths["ckpt"]).max() < 1e-3
     assert 100 < np.median(depths["onnx"]) < 200

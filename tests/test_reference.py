@@ -109,7 +109,7 @@ def test_training_and_prediction_with_the_reference(tiny_dataset, tmp_path, mode
                 f"paths.output_dir={tmp_path}",
             ],
         )
-        depth = read_channel(predict(cfg)["depth"], "Z")
+        depth = read_channel(predict(cfg)[0]["depth"], "Z")
     assert depth.shape == (32, 32) and np.isfinite(depth).all()
     # predict rebuilds the net's input from the images and the rig: the test's own depth
     module = load_module(metrics["best_checkpoint"]).eval()

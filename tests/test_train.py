@@ -115,9 +115,10 @@ def test_predict_scene_and_image_folder(trained, tiny_dataset, tmp_path):
             f"input={scene}",
             f"out={tmp_path / 'a'}",
             f"paths.output_dir={tmp_path}",
+            "drop_unlit=false",
         ],
     )
-    paths = predict(cfg)
+    (paths,) = predict(cfg)
     depth = read_channel(paths["depth"], "Z")
     assert depth.shape == (32, 32) and 100 < np.median(depth) < 200  # mm
     assert _ply_count(paths["points"]) == 32 * 32
@@ -137,7 +138,7 @@ def test_predict_scene_and_image_folder(trained, tiny_dataset, tmp_path):
             f"paths.output_dir={tmp_path}",
         ],
     )
-    np.testing.assert_array_equal(read_channel(predict(cfg)["depth"], "Z"), depth)
+    np.testing.assert_array_equal(read_channel(predict(cfg)[0]["depth"], "Z"), depth)
 
 
 def test_multirun_writes_one_csv_with_failed_jobs_and_their_errors(tiny_dataset, tmp_path):

@@ -1,0 +1,155 @@
+"""predict on the files rigs write: every image format, many scenes, explicit scaling and
+resizing, valid-only point clouds, and the classical method on full sequences."""
+
+import shutil
+
+import numpy as np
+import OpenEXR
+import pytest
+from helpers import compose_config
+from PIL import Image as PILImage
+
+from odmv.io.exr import read_channel, write_exr
+from odmv.io.images import ImageError, fit_to, read_image
+from odmv.predict import predict
+
+VIEWS = ("right", "down", "left", "up")
+
+
+def _views(scene):
+    return {v: read_channel(scene / "fringe" / f"{v}_f2_s00.exr", "Y") for v in VIEWS}
+
+
+def _save(folder, name, image, fmt):
+    """Write one view in ``fmt``; returns the intensity the file holds (after quantization)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    a = np.clip(image, 0, 1)
+    if fmt == "exr":
+        write_exr(folder / f"{name}.exr", {"Y": image})
+        return image
+    if fmt == "npy":
+        np.save(folder / f"{name}.npy", image.astype(np.float32))
+        return image
+    if fmt in ("png8", "bmp8"):
+        q = np.round(a * 255).astype(np.uint8)
+        PILImage.fromarray(q).save(folder / f"{name}.{fmt[:3]}")
+        return q / 255.0
+    if fmt in ("png16", "tif16"):
+        q = np.round(a * 65535).astype(np.uint16)
+        PILImage.fromarray(q).save(folder / f"{name}.{fmt[:3]}")
+        return q / 65535.0
+    if fmt == "tiff32":
+        PILImage.fromarray(image.astype(np.float32)).save(folder / f"{name}.tiff")
+        return image
+    raise AssertionError(fmt)
+
+
+def _predict(ckpt, folder, out, *extra):
+    cfg = compose_config(
+        "predict",
+        [f"ckpt_path={ckpt}", f"input={folder}", f"out={out}", f"paths.output_dir={out}", *extra],
+    )
+    return predict(cfg)
+
+
+@pytest.mark.parametrize("fmt", ["exr", "npy", "tiff32", "png16", "tif16", "png8", "bmp8"])
+def test_each_format_reads_back_and_predicts(fmt, trained, tiny_dataset, tmp_path):
+    ckpt = trained[1]["best_checkpoint"]
+    images = _views(tiny_dataset / "scenes" / "000004")
+    folder = tmp_path / fmt
+    held = {v: _save(folder, v, img, fmt) for v, img in images.items()}
+    for v in VIEWS:
+        path = next(folder.glob(f"{v}.*"))
+        im = read_image(path)
+        np.testing.assert_allclose(im.data / im.full_scale, held[v], atol=1e-6)
+    (ours,) = _predict(ckpt, folder, tmp_path / "out")
+    (ref,) = _predict(ckpt, tiny_dataset / "scenes" / "000004", tmp_path / "ref")
+    got, want = read_channel(ours["depth"], "Z"), read_channel(ref["depth"], "Z")
+    tolerance = {"png8": 0.5, "bmp8": 0.5, "png16": 0.01, "tif16": 0.01}.get(fmt, 1e-4)
+    assert np.abs(got - want).max() < tolerance  # mm
+
+
+def test_scale_and_fit_are_explicit_and_printed(trained, tiny_dataset, tmp_path, capsys):
+    ckpt = trained[1]["best_checkpoint"]
+    images = _views(tiny_dataset / "scenes" / "000004")
+    folder = tmp_path / "wide"
+    folder.mkdir()
+    for v, img in images.items():  # a 64 x 48 capture of 12-bit values in 16-bit PNG
+        q = np.round(np.clip(img[8:56], 0, 1) * 4095).astype(np.uint16)
+        PILImage.fromarray(q).save(folder / f"{v}.png")
+    _predict(ckpt, folder, tmp_path / "crop", "fit=crop", "scale=4095")
+    said = capsys.readouterr().out
+    assert "intensity: value / 4095 (given by scale=)" in said
+    assert "size: 64x48 -> 32x32 by crop (central 48x48)" in said
+    assert "rig: none given" in said
+    _predict(ckpt, folder, tmp_path / "pad", "fit=pad")
+    said = capsys.readouterr().out
+    assert "intensity: value / 65535 (16-bit integers; override with scale=)" in said
+    assert "size: 64x48 -> 32x32 by pad (padded to 64x64)" in said
+
+
+def test_fit_keeps_geometry():
+    a = np.arange(6 * 8, dtype=np.float32).reshape(1, 6, 8)
+    cropped, _ = fit_to(a, (6, 6), "crop")
+    np.testing.assert_array_equal(cropped, a[:, :, 1:7])
+    padded, _ = fit_to(a, (8, 8), "pad")
+    assert padded[0, 0].sum() == 0 and np.array_equal(padded[:, 1:7], a)
+
+
+def test_many_scenes_with_provenance_and_valid_points(trained, tiny_dataset, tmp_path):
+    ckpt = trained[1]["best_checkpoint"]
+    captures = tmp_path / "captures"
+    for sid in ("000004", "000005", "000006"):
+        for v, img in _views(tiny_dataset / "scenes" / sid).items():
+            _save(captures / f"part_{sid}", v, img, "png16")
+    results = _predict(ckpt, str(captures / "part_*"), tmp_path / "out")
+    assert [r["depth"].parent.name for r in results] == [
+        "part_000004",
+        "part_000005",
+        "part_000006",
+    ]
+    header = OpenEXR.File(str(results[0]["depth"]), header_only=True).header()
+    assert header["unit"] == "mm" and header["odmv_model"].endswith(".ckpt")
+    assert results[0]["preview"].read_bytes()[:4] == b"\x89PNG"
+    everything = _predict(ckpt, captures / "part_000004", tmp_path / "all", "drop_unlit=false")
+    lit_only = _ply_vertices(results[0]["points"])
+    assert _ply_vertices(everything[0]["points"]) == 32 * 32
+    # the image corners are lit by no projector of the rig: their points are dropped
+    assert 0.5 * 32 * 32 < lit_only < 32 * 32
+
+
+def _ply_vertices(path):
+    head = path.read_bytes().split(b"end_header\n")[0].decode()
+    return int(next(x for x in head.splitlines() if x.startswith("element vertex")).split()[-1])
+
+
+def test_classical_method_on_a_scene_and_on_loose_images(tiny_dataset, tmp_path):
+    scene = tiny_dataset / "scenes" / "000004"
+    cfg = compose_config("predict", ["method=psp", f"input={scene}", f"out={tmp_path / 'a'}"])
+    (done,) = predict(cfg)
+    depth = read_channel(done["depth"], "Z")
+    truth = read_channel(scene / "depth.exr", "Z")
+    ok = np.isfinite(depth)
+    assert ok.mean() > 0.6 and np.abs(depth - truth)[ok].mean() < 0.1  # mm
+    loose = tmp_path / "loose"
+    loose.mkdir()
+    for f in (scene / "fringe").glob("*_f*_s*.exr"):
+        shutil.copy(f, loose / f.name)
+    cfg = compose_config(
+        "predict",
+        ["method=psp", f"input={loose}", f"out={tmp_path / 'b'}", f"manifest={tiny_dataset}"],
+    )
+    np.testing.assert_array_equal(read_channel(predict(cfg)[0]["depth"], "Z"), depth)
+
+
+def test_bad_images_are_named(tmp_path):
+    rgb = np.zeros((8, 8, 3), np.uint8)
+    rgb[..., 0] = 200
+    PILImage.fromarray(rgb).save(tmp_path / "colour.png")
+    with pytest.raises(ImageError, match=r"colour.png: a colour image"):
+        read_image(tmp_path / "colour.png")
+    (tmp_path / "noise.png").write_bytes(np.random.default_rng(0).bytes(100))
+    with pytest.raises(ImageError, match=r"noise.png: not a readable image"):
+        read_image(tmp_path / "noise.png")
+    with pytest.raises(ImageError, match=r"missing.tif: no such file"):
+        read_image(tmp_path / "missing.tif")
