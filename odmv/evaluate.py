@@ -74,7 +74,7 @@ def save_figure(
     for k, v in enumerate(views):
         axes[0, k].imshow(fringes[k], cmap="gray", vmin=-1, vmax=1)
         axes[0, k].set_title(f"input {k + 1}: {v}")
-    lo, hi = float(gt.min()), float(gt.max())
+    lo, hi = float(np.nanmin(gt)), float(np.nanmax(gt))
     im = axes[1, 0].imshow(gt, cmap="viridis_r", vmin=lo, vmax=hi)
     axes[1, 0].set_title("ground truth depth (mm)")
     fig.colorbar(im, ax=axes[1, 0], fraction=0.046)
@@ -83,7 +83,7 @@ def save_figure(
     fig.colorbar(im, ax=axes[1, 1], fraction=0.046)
     err = np.abs(pred_mm - gt)
     im = axes[1, 2].imshow(err, cmap="inferno", vmin=0, vmax=error_scale_mm)
-    axes[1, 2].set_title(f"|error| (mm), MAE {err.mean():.3f}")
+    axes[1, 2].set_title(f"|error| (mm), MAE {np.nanmean(err):.3f}")
     fig.colorbar(im, ax=axes[1, 2], fraction=0.046)
     for ax in (axes[1, 0], axes[1, 1], axes[1, 2]):
         ax.axhline(row, color="red", lw=0.8)

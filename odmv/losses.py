@@ -6,6 +6,8 @@ L_depth = alpha (1 - SSIM) + (1 - alpha) L1 (eqs. 2-4, kornia's SSIM, 11 px Gaus
 and L_view = MSE against the normalized input fringes (eq. 5). Terms whose outputs a net does
 not produce are skipped. Auxiliary targets are the depth taken at each scale's pixel centres
 (the same rule the data module resizes with), so no target depth is invented at an edge.
+Pixels without ground truth (NaN depth, e.g. an imported dataset's background) add no error:
+the L1 term averages over valid pixels, and SSIM sees the prediction there.
 """
 
 from __future__ import annotations
@@ -37,10 +39,13 @@ def resize_target(t: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
 
 def depth_loss(pred: torch.Tensor, target: torch.Tensor, w: LossWeights) -> dict[str, torch.Tensor]:
     target = resize_target(target, pred.shape[-2:])
+    valid = torch.isfinite(target)
+    if not valid.all():  # pixels without ground truth (NaN) take the prediction: no error
+        target = torch.where(valid, target, pred.detach())
     side = min(pred.shape[-2:])
     window = min(w.ssim_window, side if side % 2 else side - 1)  # odd, no larger than the map
     l_ssim = 1 - ssim(pred, target, window, max_val=w.depth_range).mean()
-    l1 = (pred - target).abs().mean()
+    l1 = (pred - target).abs().sum() / valid.sum().clamp_min(1)
     return {"loss": w.alpha * l_ssim + (1 - w.alpha) * l1, "ssim": l_ssim, "l1": l1}
 
 

@@ -22,7 +22,8 @@ SUBSETS = ("all", "shadowed", "unlit")
 def _masked_sums(pred_mm, target_mm, mask) -> tuple[torch.Tensor, ...]:
     """Per image (B, float64): sum of |error|, sum of error², number of masked pixels."""
     m = mask.to(torch.float64).flatten(1)
-    err = (pred_mm.to(torch.float64) - target_mm.to(torch.float64)).flatten(1) * m
+    err = (pred_mm.to(torch.float64) - target_mm.to(torch.float64)).flatten(1)
+    err = torch.where(m > 0, err, 0.0) * m  # NaN targets (no ground truth) lie outside masks
     return err.abs().sum(1), (err**2).sum(1), m.sum(1)
 
 

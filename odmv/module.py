@@ -205,7 +205,11 @@ class FPPModule(L.LightningModule):
         n = min(self.hparams.log_images, batch["fringes"].shape[0])
         gt = batch["depth_mm"][:n]
         pred = self.depth_mm(out)[:n].detach()
-        lo, hi = gt.amin(), gt.amax()
+        known = gt[torch.isfinite(gt)]  # NaN: no ground truth, drawn black
+        lo, hi = (
+            (known.amin(), known.amax()) if known.numel() else (gt.new_tensor(0), gt.new_tensor(1))
+        )
+        gt = gt.nan_to_num(float(lo))
         step = self.global_step
 
         def grid(x):  # N x C x H x W in [0, 1] -> 1 x NH x CW: samples in rows, channels across

@@ -44,8 +44,11 @@ class Report:
         return f"{root}: ok, {self.scenes} scenes, {self.views} views, {self.images} fringe images"
 
 
-def _check_image(path: Path, channels: list[str], shape: tuple[int, int], deep: bool) -> str | None:
-    """Return a problem line, or None. ``deep`` decodes the pixels too."""
+def _check_image(
+    path: Path, channels: list[str], shape: tuple[int, int], deep: bool, nan_depth: bool = False
+) -> str | None:
+    """Return a problem line, or None. ``deep`` decodes the pixels too; ``nan_depth``: the
+    manifest declares NaN depth for pixels without ground truth."""
     try:
         found = exr.exr_channels(path)
         missing = [c for c in channels if c not in found]
@@ -56,17 +59,21 @@ def _check_image(path: Path, channels: list[str], shape: tuple[int, int], deep: 
             return f"{path}: channel shape(s) {bad} differ from the manifest's {shape}"
         if deep:
             data = exr.read_exr(path, channels)
-            return _check_values(path, data)
+            return _check_values(path, data, nan_depth)
     except exr.ExrError as e:
         return str(e)
     return None
 
 
-def _check_values(path: Path, data: dict[str, np.ndarray]) -> str | None:
+def _check_values(path: Path, data: dict[str, np.ndarray], nan_depth: bool) -> str | None:
     name = path.name
     for c, a in data.items():
         a = a.astype(np.float32)
-        if name == DEPTH_FILE and not (np.isfinite(a).all() and (a > 0).all()):
+        if name == DEPTH_FILE and nan_depth:  # an import: its depth values as stored
+            known = a[~np.isnan(a)]
+            if not known.size or not np.isfinite(known).all():
+                return f"{path}: depth must be finite where known (NaN marks no ground truth)"
+        elif name == DEPTH_FILE and not (np.isfinite(a).all() and (a > 0).all()):
             return f"{path}: depth must be finite and positive everywhere ({np.isnan(a).sum()} NaN)"
         if name in (LIT_FILE, FOOTPRINT_FILE) and not np.isin(a, (0.0, 1.0)).all():
             return f"{path}: mask channel {c!r} has values other than 0 and 1"
@@ -96,11 +103,13 @@ def validate(root: str | Path, deep: bool = True) -> Report:
         checks = [(p, [FRINGE_CHANNEL]) for p in m.fringe_files(scene["id"])]
         report.images += len(checks)
         checks += [(sdir / DEPTH_FILE, [DEPTH_CHANNEL]), (sdir / LIT_FILE, views)]
-        checks.append((sdir / PROJ_COORD_FILE, views))
+        if not m.extra.get("source"):  # imported datasets have no projector coordinates
+            checks.append((sdir / PROJ_COORD_FILE, views))
         if (sdir / FOOTPRINT_FILE).exists():  # optional (odmv.data.subsets)
             checks.append((sdir / FOOTPRINT_FILE, views))
+        nan_depth = bool(m.extra.get("invalid_depth"))
         for path, channels in checks:
-            problem = _check_image(path, channels, shape, deep)
+            problem = _check_image(path, channels, shape, deep, nan_depth)
             if problem:
                 report.problems.append(problem)
         if deep and not any(p.startswith(str(sdir)) for p in report.problems):
@@ -121,10 +130,13 @@ def _check_coords(sdir: Path, views: list[str]) -> str | None:
     """Projector coordinates must be finite exactly where the projector lights the pixel, and
     a projector lights only pixels inside its footprint."""
     lit = exr.read_exr(sdir / LIT_FILE, views)
-    coord = exr.read_exr(sdir / PROJ_COORD_FILE, views)
-    for v in views:
-        if not np.array_equal(np.isfinite(coord[v]), lit[v] > 0.5):
-            return f"{sdir / PROJ_COORD_FILE}: channel {v!r} is not finite exactly on lit pixels"
+    if (sdir / PROJ_COORD_FILE).exists():
+        coord = exr.read_exr(sdir / PROJ_COORD_FILE, views)
+        for v in views:
+            if not np.array_equal(np.isfinite(coord[v]), lit[v] > 0.5):
+                return (
+                    f"{sdir / PROJ_COORD_FILE}: channel {v!r} is not finite exactly on lit pixels"
+                )
     if (sdir / FOOTPRINT_FILE).exists():
         foot = exr.read_exr(sdir / FOOTPRINT_FILE, views)
         for v in views:

@@ -155,12 +155,22 @@ class FPPDataModule(L.LightningDataModule):
             self.reference,
         )
         sat = m.extra.get("simulation", {}).get("render", {}).get("saturation", 1.0)
-        self.norm = Normalization.for_working_distance(
-            m.rig.camera.working_distance_mm,
-            self.depth_half_range_mm,
-            self.intensity_max if self.intensity_max is not None else sat,
-            self.depth_target,
-        )
+        intensity_max = self.intensity_max if self.intensity_max is not None else sat
+        if "depth_range_mm" in m.extra:  # an import: no rig model, its own depth range
+            if self.reference:
+                raise DataError(
+                    f"reference: {m.root} was imported without a rig calibration, so the "
+                    "reference-plane phase is unknown; use reference=false"
+                )
+            lo, hi = m.extra["depth_range_mm"]
+            self.norm = Normalization.for_depth_range(lo, hi, intensity_max, self.depth_target)
+        else:
+            self.norm = Normalization.for_working_distance(
+                m.rig.camera.working_distance_mm,
+                self.depth_half_range_mm,
+                intensity_max,
+                self.depth_target,
+            )
         self.splits = split_scenes(m, self.split_fractions, self.split_seed)
         self.manifest = m
 
@@ -172,8 +182,8 @@ class FPPDataModule(L.LightningDataModule):
         total, count = 0.0, 0
         for sid in self.splits[split]:
             depth = load_depth(self.manifest, sid, self.spec)
-            total += float(depth.sum(dtype=np.float64))
-            count += depth.size
+            total += float(np.nansum(depth, dtype=np.float64))
+            count += int(np.isfinite(depth).sum())
         return total / max(count, 1)
 
     def _train_specs(self) -> list[SampleSpec]:

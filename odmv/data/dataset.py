@@ -153,15 +153,18 @@ def _read(path: Path, channels: list[str]) -> dict[str, np.ndarray]:
 
 
 def _full_depth(m: Manifest, sid: str) -> np.ndarray:
-    """A scene's depth map (mm) at the dataset's size; refuses a wrong shape or non-finite data."""
+    """A scene's depth map (mm) at the dataset's size, NaN where it has no ground truth (only
+    where the manifest declares ``invalid_depth``, as imported datasets do); refuses a wrong
+    shape, infinite values or NaN in a dataset that promises none."""
     path = m.scene_dir(sid) / DEPTH_FILE
     depth = _read(path, [DEPTH_CHANNEL])[DEPTH_CHANNEL].astype(np.float32, copy=False)
     if depth.shape != (m.height_px, m.width_px):
         raise DataError(
             f"{path}: shape {depth.shape} differs from the manifest's {(m.height_px, m.width_px)}"
         )
-    if not np.isfinite(depth).all():
-        raise DataError(f"{path}: {int((~np.isfinite(depth)).sum())} non-finite depth values")
+    bad = np.isinf(depth) if m.extra.get("invalid_depth") else ~np.isfinite(depth)
+    if bad.any() or np.isnan(depth).all():
+        raise DataError(f"{path}: {int(bad.sum())} non-finite depth values")
     return depth
 
 

@@ -38,6 +38,19 @@ class Normalization:
             return cls(intensity_max, working_distance_mm, -half_range_mm)
         raise ValueError(f"data.depth_target: {target!r} is not 'depth' or 'height'")
 
+    @classmethod
+    def for_depth_range(
+        cls, lo_mm: float, hi_mm: float, intensity_max: float = 1.0, target: str = "depth"
+    ) -> Normalization:
+        """For a dataset without a rig model (an import): its depth range [lo, hi] mm maps
+        to [-1, 1]; as height, the farthest depth is the plane at 0 and the nearest is 2."""
+        half = (hi_mm - lo_mm) / 2 * 1.05  # a margin for depths beyond the training range
+        if target == "depth":
+            return cls(intensity_max, (lo_mm + hi_mm) / 2, half)
+        if target == "height":
+            return cls(intensity_max, hi_mm, -half)
+        raise ValueError(f"data.depth_target: {target!r} is not 'depth' or 'height'")
+
     def fringes(self, images):
         """Linear intensity -> [-1, 1] (clipped at 0 and intensity_max)."""
         lib = torch if isinstance(images, torch.Tensor) else np
