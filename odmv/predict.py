@@ -30,6 +30,7 @@ from omegaconf import DictConfig
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
+from odmv.calibration import load_calibration
 from odmv.classical import reconstruct_scene
 from odmv.cli import run_app
 from odmv.data.dataset import DataError, SampleSpec, check_spec, load_scene
@@ -270,9 +271,21 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
     predictor = load_predictor(cfg.ckpt_path) if cfg.method == "net" else None
     views = predictor.views if predictor else list(VIEW_NAMES)
     scenes = find_scenes(str(cfg.input), views)
-    default_rig = load_manifest(cfg.manifest).rig if cfg.manifest else None
+    default_rig = (
+        load_calibration(cfg.calibration)
+        if cfg.calibration
+        else load_manifest(cfg.manifest).rig
+        if cfg.manifest
+        else None
+    )
     if default_rig is None and any(s.manifest is None for s in scenes):
-        print("rig: none given (manifest=PATH); using the paper's default rig", flush=True)
+        print(
+            "rig: none given (calibration=FILE or manifest=PATH); using the paper's default rig",
+            flush=True,
+        )
+    missing = [v for v in views if default_rig is not None and v not in default_rig.projectors()]
+    if missing and predictor is not None:
+        raise ValueError(f"calibration: no projector {missing[0]!r}, which the net needs")
     reader = ImageReader(cfg.scale, cfg.fit)
     out_root = Path(cfg.out or cfg.paths.output_dir)
     results = []

@@ -153,3 +153,61 @@ def test_bad_images_are_named(tmp_path):
         read_image(tmp_path / "noise.png")
     with pytest.raises(ImageError, match=r"missing.tif: no such file"):
         read_image(tmp_path / "missing.tif")
+
+
+def _calibration_of(rig, size):
+    """The default rig written as an OpenCV-style calibration (pixel centres at integers)."""
+    from odmv.calibration import _WORLD_TO_CAMERA
+
+    cam = rig.camera_at(*size)
+    shift = np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
+    t_wc = cam.t
+    projectors = {}
+    for name, p in rig.projectors().items():
+        R_cp = p.R @ _WORLD_TO_CAMERA.T
+        projectors[name] = {
+            "image_size": [p.width_px, p.height_px],
+            "K": (p.K - shift).tolist(),
+            "R": R_cp.tolist(),
+            "t": (p.t - R_cp @ t_wc).tolist(),
+            "phase_axis": p.phase_axis,
+        }
+    return {
+        "camera": {
+            "image_size": list(size),
+            "K": (cam.K - shift).tolist(),
+            "dist": cam.dist.tolist(),
+        },
+        "reference_plane_mm": float(cam.center[2]),
+        "projectors": projectors,
+    }
+
+
+def test_an_opencv_calibration_gives_the_rig_it_describes(trained, tiny_dataset, tmp_path):
+    import yaml
+
+    from odmv.calibration import CalibrationError, load_calibration
+    from odmv.io.manifest import load_manifest
+
+    rig = load_manifest(tiny_dataset).rig
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump(_calibration_of(rig, (64, 64))))
+    calibrated = load_calibration(path)
+    np.testing.assert_allclose(calibrated.camera_at(32, 32).P, rig.camera_at(32, 32).P, atol=1e-9)
+    for name, p in rig.projectors().items():
+        np.testing.assert_allclose(calibrated.projectors()[name].P, p.P, atol=1e-6)
+    # the net's reference phase and point cloud come out the same as with the dataset's rig
+    ckpt = trained[1]["best_checkpoint"]
+    folder = tmp_path / "images"
+    for v, img in _views(tiny_dataset / "scenes" / "000004").items():
+        _save(folder, v, img, "exr")
+    (a,) = _predict(ckpt, folder, tmp_path / "a", f"calibration={path}")
+    (b,) = _predict(ckpt, folder, tmp_path / "b", f"manifest={tiny_dataset}")
+    np.testing.assert_allclose(read_channel(a["depth"], "Z"), read_channel(b["depth"], "Z"))
+    assert a["points"].read_bytes() == b["points"].read_bytes()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(
+        "camera: {image_size: [64, 64], K: [[1, 0]]}\nprojectors: {}\nreference_plane_mm: 150\n"
+    )
+    with pytest.raises(CalibrationError, match=r"bad.yaml: camera.K must be a finite 3x3 array"):
+        load_calibration(bad)

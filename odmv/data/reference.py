@@ -55,7 +55,8 @@ def reference_phase(
         p = projectors[v]
         uv = p.project(pts)
         inside = p.in_image(uv)
-        phase = 2 * np.pi * (uv[..., 0] / period_px + step / n_steps)
+        coord = uv[..., 0] if p.phase_axis == "u" else uv[..., 1]
+        phase = 2 * np.pi * (coord / period_px + step / n_steps)
         out[k, 0] = np.where(inside, np.sin(phase), 0)
         out[k, 1] = np.where(inside, np.cos(phase), 0)
     return out
