@@ -40,7 +40,14 @@ from odmv.export import METADATA_KEY
 from odmv.fpp import period_in_camera_px
 from odmv.io.exr import write_exr
 from odmv.io.images import IMAGE_EXTENSIONS, find_view_image, fit_to, read_image
-from odmv.io.manifest import MANIFEST, FringeSpec, Manifest, fringe_name, load_manifest
+from odmv.io.manifest import (
+    FRINGE_DIR,
+    MANIFEST,
+    FringeSpec,
+    Manifest,
+    fringe_name,
+    load_manifest,
+)
 from odmv.module import load_module
 from odmv.rig import VIEW_NAMES, Camera, Rig
 from odmv.simulate import CONF_DIR
@@ -164,20 +171,51 @@ def point_cloud(depth_mm: np.ndarray, cam: Camera, keep: np.ndarray | None = Non
     return pts[ok]
 
 
-def write_ply(path: Path, points: np.ndarray) -> Path:
-    """Binary little-endian PLY of float32 xyz points, written atomically."""
+def write_ply(path: Path, points: np.ndarray, grey: np.ndarray | None = None) -> Path:
+    """Binary little-endian PLY of float32 xyz points (grey: uint8 colour per point, written
+    as equal red, green and blue), atomically."""
     path.parent.mkdir(parents=True, exist_ok=True)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if grey is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    rows = np.empty(len(points), dtype=fields)
+    for k, axis in enumerate("xyz"):
+        rows[axis] = points[:, k]
+    if grey is not None:
+        for channel in ("red", "green", "blue"):
+            rows[channel] = grey
+    types = {"<f4": "float", "u1": "uchar"}
     header = (
         "ply\nformat binary_little_endian 1.0\ncomment odmv depth, camera frame, mm\n"
-        f"element vertex {len(points)}\nproperty float x\nproperty float y\nproperty float z\n"
-        "end_header\n"
+        f"element vertex {len(points)}\n"
+        + "".join(f"property {types[t]} {name}\n" for name, t in fields)
+        + "end_header\n"
     )
     tmp = path.with_name(f".{path.name}.tmp")
     with open(tmp, "wb") as fh:
         fh.write(header.encode("ascii"))
-        fh.write(points.astype("<f4").tobytes())
+        fh.write(rows.tobytes())
     tmp.replace(path)
     return path
+
+
+def uniform_grey(scene: Scene, reader: ImageReader, views: list[str], size) -> np.ndarray | None:
+    """The flat-illumination images as grey levels (uint8, the brightest view per pixel, so a
+    surface any projector lights shows its albedo), or None where the scene has none."""
+    if scene.manifest is not None:
+        m = scene.manifest
+        if not (m.fringe.uniform and m.images == "full"):
+            return None
+        folder, stems = m.scene_dir(scene.name) / FRINGE_DIR, [f"{v}_uniform" for v in m.views]
+    else:
+        folder, stems = scene.folder, [f"{v}_uniform" for v in views]
+        stems = [s for s in stems if find_view_image(folder, s)]
+        if not stems:
+            return None
+    images = reader.read(folder, stems, None)
+    if size is not None:
+        images, _ = fit_to(images, size, reader.fit)
+    return np.round(np.clip(images.max(0), 0, 1) * 255).astype(np.uint8)
 
 
 @dataclass
@@ -310,7 +348,8 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
                     images, period_in_camera_px(period, cam, proj), cfg.unlit_threshold
                 )
             out = out_root / scene.name if len(scenes) > 1 else out_root
-            results.append(write_outputs(out, depth, cam, keep, scene, cfg))
+            grey = uniform_grey(scene, reader, views, depth.shape) if cfg.colour else None
+            results.append(write_outputs(out, depth, cam, keep, grey, scene, cfg))
             bar.advance(task)
     seconds = time.perf_counter() - t0
     print(
@@ -349,7 +388,13 @@ def classical_depth(scene: Scene, reader: ImageReader, rig: Rig, manifest: str |
 
 
 def write_outputs(
-    out: Path, depth: np.ndarray, cam: Camera, keep: np.ndarray | None, scene: Scene, cfg
+    out: Path,
+    depth: np.ndarray,
+    cam: Camera,
+    keep: np.ndarray | None,
+    grey: np.ndarray | None,
+    scene: Scene,
+    cfg,
 ) -> dict[str, Path]:
     attributes = {
         "unit": "mm",
@@ -362,7 +407,11 @@ def write_outputs(
     return {
         "depth": write_exr(out / "depth.exr", {"Z": depth}, attributes=attributes),
         "preview": write_preview(out / "depth.png", depth),
-        "points": write_ply(out / "points.ply", point_cloud(depth, cam, keep)),
+        "points": write_ply(
+            out / "points.ply",
+            point_cloud(depth, cam, keep),
+            None if grey is None else grey[np.isfinite(depth) & (True if keep is None else keep)],
+        ),
     }
 
 

@@ -211,3 +211,15 @@ def test_an_opencv_calibration_gives_the_rig_it_describes(trained, tiny_dataset,
     )
     with pytest.raises(CalibrationError, match=r"bad.yaml: camera.K must be a finite 3x3 array"):
         load_calibration(bad)
+
+
+def test_points_are_coloured_by_the_uniform_images(trained, tiny_dataset, tmp_path):
+    ckpt = trained[1]["best_checkpoint"]
+    scene = tiny_dataset / "scenes" / "000004"
+    (coloured,) = _predict(ckpt, scene, tmp_path / "a", "drop_unlit=false")
+    (plain,) = _predict(ckpt, scene, tmp_path / "b", "drop_unlit=false", "colour=false")
+    head, body = coloured["points"].read_bytes().split(b"end_header\n")
+    assert b"property uchar red" in head and len(body) == 32 * 32 * 15
+    rows = np.frombuffer(body, dtype=[("xyz", "<f4", 3), ("rgb", "u1", 3)])
+    assert rows["rgb"].max() > 100 and (rows["rgb"][:, 0] == rows["rgb"][:, 2]).all()
+    assert b"uchar" not in plain["points"].read_bytes().split(b"end_header")[0]

@@ -98,10 +98,11 @@ def test_evaluate_writes_metrics_and_figures(trained, tmp_path):
 
 def _ply_count(path):
     head = path.read_bytes().split(b"end_header\n")[0].decode()
-    n = int(
-        next(line for line in head.splitlines() if line.startswith("element vertex")).split()[-1]
-    )
-    assert path.stat().st_size == len(head) + len("end_header\n") + 12 * n
+    lines = head.splitlines()
+    n = int(next(line for line in lines if line.startswith("element vertex")).split()[-1])
+    size = {"float": 4, "uchar": 1}
+    per_vertex = sum(size[line.split()[1]] for line in lines if line.startswith("property"))
+    assert path.stat().st_size == len(head) + len("end_header\n") + per_vertex * n
     return n
 
 
