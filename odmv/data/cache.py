@@ -100,8 +100,14 @@ class ArrayCache:
             for a in out.values():
                 a.flush()
             (tmp / _DONE).write_text(json.dumps({"ids": ids, "spec": spec.key()}))
-            shutil.rmtree(folder, ignore_errors=True)
-            os.replace(tmp, folder)
+            # another process (a DDP rank) may have built the same cache meanwhile: keep its
+            if not cls.complete(folder):
+                shutil.rmtree(folder, ignore_errors=True)  # an interrupted build's leftover
+                try:
+                    os.replace(tmp, folder)
+                except OSError:  # renamed into place by another process just now
+                    if not cls.complete(folder):
+                        raise
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
         return cls(folder)
