@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import shutil
 import sys
 import warnings
@@ -33,10 +34,16 @@ _WRAPPERS = (OmegaConfBaseException, InstantiationException)
 
 
 def _one_line(exc: BaseException) -> str:
+    key = None
     while isinstance(exc, _WRAPPERS) and exc.__cause__ is not None:
+        key = key or getattr(exc, "full_key", None)
         exc = exc.__cause__  # the resolver's or constructor's own message, not the wrapper
     text = str(exc).strip().splitlines()
-    return text[0] if text else type(exc).__name__
+    line = text[0] if text else type(exc).__name__
+    # OmegaConf words a resolver's error as "<Type> raised while resolving interpolation: ..."
+    line = re.sub(r"^\w+ raised while resolving interpolation: ", "", line)
+    key = key or getattr(exc, "full_key", None)
+    return f"{key}: {line}" if key and not line.startswith(f"{key}:") else line
 
 
 def quiet_lightning() -> None:

@@ -21,6 +21,8 @@ from omegaconf import DictConfig, OmegaConf
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.cli import run_app, task_overrides
+from odmv.data.dataset import DataError
+from odmv.io.manifest import MANIFEST
 from odmv.metrics import DepthErrors
 from odmv.module import PREDICTIONS, SCENES_CSV, load_module, net_input, write_json
 from odmv.simulate import CONF_DIR
@@ -129,6 +131,11 @@ def data_settings(saved: dict, cfg: DictConfig, overrides: list[str]) -> dict:
     if data.get("root") is None:
         raise ValueError("root: the checkpoint names no dataset; give root=PATH")
     data["root"] = str(Path(data["root"]).resolve())
+    if not (Path(data["root"]) / MANIFEST).is_file():
+        raise DataError(
+            f"{data['root']}: no dataset here (root=PATH names the dataset to test on; "
+            "evaluation never renders one)"
+        )
     data.update(progress=False, render=False, simulate=None)
     return data
 
