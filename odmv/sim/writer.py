@@ -265,14 +265,14 @@ def simulate(s: SimSettings, workers: int | None = None, progress: bool = True) 
     scenes_dir = s.out / "scenes"
     todo = [i for i in range(s.scenes) if not (scenes_dir / scene_id(i)).is_dir()]
     skipped = s.scenes - len(todo)
-    # specs are drawn before anything is written, so a bad mesh file leaves no folder behind
-    cache: dict = {}
-    specs = {i: draw_scene_spec(s, i, cache) for i in todo}
-    workers = max(1, min(workers or os.cpu_count() or 1, len(todo) or 1))
     need = scene_bytes_bound(s) * len(todo)
     big = need > BIG_JOB_BYTES
     if todo:
         check_disk(s.out, need, len(todo), announce=big)
+    # specs are drawn before anything is written, so a bad mesh file leaves no folder behind
+    cache: dict = {}
+    specs = {i: draw_scene_spec(s, i, cache) for i in todo}
+    workers = max(1, min(workers or os.cpu_count() or 1, len(todo) or 1))
     scenes_dir.mkdir(parents=True, exist_ok=True)
     for stale in scenes_dir.glob(f"{PARTIAL_PREFIX}*"):
         shutil.rmtree(stale)  # left by an interrupted run
