@@ -71,8 +71,9 @@ def test_a_non_finite_loss_stops_training_with_a_clear_message():
     net_cfg = {"_target_": "odmv.models.UNet", "in_channels": 1, "base_width": 4}
     module = FPPModule(net_cfg)
     batch = {
-        "fringes": torch.zeros(2, 1, 32, 32),
-        "depth": torch.full((2, 1, 32, 32), float("nan")),
+        # NaN depth means "no ground truth" (masked); a NaN input poisons the output
+        "fringes": torch.full((2, 1, 32, 32), float("nan")),
+        "depth": torch.zeros(2, 1, 32, 32),
         "scene_id": ["000001", "000002"],
     }
     with pytest.raises(NonFiniteLossError, match=r"train/loss: nan at epoch 0.*000001, 000002"):
