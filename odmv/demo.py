@@ -12,6 +12,7 @@ from pathlib import Path
 from hydra import compose, initialize_config_dir
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
+from odmv.cli import run_app
 from odmv.evaluate import evaluate, report
 from odmv.simulate import CONF_DIR
 from odmv.train import train
@@ -44,4 +45,5 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    # run_app: the apps' quiet output and one-line errors
+    sys.exit(run_app(lambda: main(sys.argv[1:])))
