@@ -13,7 +13,7 @@ import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.data.normalize import Normalization
 from odmv.data.reference import view_channels
 from odmv.module import FPPModule
-from odmv.rig import Rig
+from odmv.rig import Rig, size_hw
 
 PRESETS = ("paper", "paper_plus", "mini", "quickstart")
 
@@ -34,8 +34,7 @@ def preset_config(preset: str, model: str, overrides: list[str] = ()) -> DictCon
 
 
 def input_size(cfg: DictConfig) -> tuple[int, int]:
-    res = cfg.data.resolution
-    return (res, res) if isinstance(res, int) else tuple(res)
+    return size_hw(cfg.data.resolution)
 
 
 def build_module(cfg: DictConfig) -> FPPModule:

@@ -88,12 +88,13 @@ def run_app(fn: Callable[[], T], run_dir: str | os.PathLike | None = None) -> T 
         if rank_zero_only.rank == 0:  # DDP ranks fail alike; one line is enough
             print(f"error: {line}", file=sys.stderr)
         remove_if_empty(Path(run_dir) if run_dir else None)
-        if _in_multirun():
+        if in_multirun():
             return JobFailed(line)
         sys.exit(2)
 
 
-def _in_multirun() -> bool:
+def in_multirun() -> bool:
+    """Whether this process runs a job of a Hydra multirun (-m)."""
     from hydra.core.hydra_config import HydraConfig
 
     return HydraConfig.initialized() and str(HydraConfig.get().mode) == "RunMode.MULTIRUN"

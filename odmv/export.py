@@ -25,6 +25,7 @@ import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.cli import run_app
 from odmv.data.reference import view_channels
 from odmv.module import FPPModule, load_module
+from odmv.rig import size_hw
 from odmv.simulate import CONF_DIR
 
 #: ONNX opset: Conv and ConvTranspose in 3D and 5D linear Resize (trilinear) are all covered.
@@ -45,8 +46,7 @@ class DepthInMM(torch.nn.Module):
 
 def input_shape(module: FPPModule) -> tuple[int, int, int]:
     """(channels, H, W) of the net's input, from the checkpoint's settings."""
-    res = (module.hparams.data_cfg or {}).get("resolution", 480)
-    h, w = (res, res) if isinstance(res, int) else tuple(res)
+    h, w = size_hw((module.hparams.data_cfg or {}).get("resolution", 480))
     reference = (module.hparams.input_spec or {}).get("reference", False)
     in_channels = len(module.hparams.views) * view_channels(reference)
     return in_channels, h, w

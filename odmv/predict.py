@@ -36,7 +36,7 @@ from odmv.cli import run_app
 from odmv.data.dataset import DataError, SampleSpec, check_spec, load_scene
 from odmv.data.normalize import Normalization
 from odmv.data.reference import network_input, reference_mode, reference_phase
-from odmv.export import METADATA_KEY
+from odmv.export import METADATA_KEY, input_shape
 from odmv.fpp import period_in_camera_px
 from odmv.io.exr import write_exr
 from odmv.io.images import IMAGE_EXTENSIONS, find_view_image, fit_to, read_image
@@ -248,7 +248,6 @@ def load_predictor(path: str | Path) -> Predictor:
     if Path(path).suffix == ".onnx":
         return _onnx_predictor(Path(path))
     module = load_module(path).eval()
-    res = (module.hparams.data_cfg or {}).get("resolution", 480)
 
     def run(x: torch.Tensor) -> np.ndarray:
         with torch.no_grad():
@@ -256,7 +255,7 @@ def load_predictor(path: str | Path) -> Predictor:
 
     return Predictor(
         list(module.hparams.views),
-        (res, res) if isinstance(res, int) else tuple(res),
+        input_shape(module)[1:],
         module.norm,
         dict(module.hparams.get("input_spec") or {}),
         run,

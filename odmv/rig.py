@@ -53,6 +53,11 @@ def check_views(views: list[str] | tuple[str, ...]) -> tuple[str, ...]:
     return tuple(v for v in VIEW_NAMES if v in views)
 
 
+def size_hw(resolution: int | list[int] | tuple[int, int]) -> tuple[int, int]:
+    """A resolution setting (one int for square images, or [height, width]) as (H, W)."""
+    return (resolution, resolution) if isinstance(resolution, int) else tuple(resolution)
+
+
 @dataclass(frozen=True)
 class CameraSpec:
     """Camera hardware (paper Sec. II.B): 4800x4800 px, 3.2 um pixels, 35.47 mm square field.

@@ -17,7 +17,14 @@ from omegaconf import DictConfig, OmegaConf
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.checkpoint import check_fits, check_weights, read_checkpoint
-from odmv.cli import JobFailed, rank_zero_print, remove_if_empty, run_app, task_overrides
+from odmv.cli import (
+    JobFailed,
+    in_multirun,
+    rank_zero_print,
+    remove_if_empty,
+    run_app,
+    task_overrides,
+)
 from odmv.module import FPPModule, write_json
 from odmv.simulate import CONF_DIR
 from odmv.sweep import append_row
@@ -74,9 +81,9 @@ def build(cfg: DictConfig):
 
 def run_folder_of(ckpt_path: str | Path) -> Path | None:
     """The run folder a checkpoint was saved in (``RUN/checkpoints/*.ckpt``), if any."""
-    folder = Path(ckpt_path).resolve().parent.parent
-    is_run = Path(ckpt_path).resolve().parent.name == "checkpoints" and (folder / ".hydra").is_dir()
-    return folder if is_run else None
+    folder = Path(ckpt_path).resolve().parent
+    is_run = folder.name == "checkpoints" and (folder.parent / ".hydra").is_dir()
+    return folder.parent if is_run else None
 
 
 def resumed_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
@@ -188,7 +195,7 @@ def check_launch(cfg: DictConfig) -> None:
     be started by a job of the sweep (use a cluster launcher, docs/training.md)."""
     from hydra.core.hydra_config import HydraConfig
 
-    if not HydraConfig.initialized() or str(HydraConfig.get().mode) != "RunMode.MULTIRUN":
+    if not in_multirun():
         return
     strategy, devices = str(cfg.trainer.get("strategy", "")), cfg.trainer.get("devices", 1)
     local = "BasicLauncher" in str(HydraConfig.get().launcher.get("_target_", ""))

@@ -33,7 +33,7 @@ from odmv.io.manifest import (
     ManifestError,
     fringe_name,
 )
-from odmv.rig import check_views
+from odmv.rig import check_views, size_hw
 
 #: Bumped whenever a sample gains or changes an array, so stale caches are not reused.
 SAMPLE_VERSION = 2
@@ -80,7 +80,7 @@ def check_spec(
     missing = [v for v in views if v not in m.views]
     if missing:
         raise DataError(f"views: {missing} not in dataset {m.root} (it has {list(m.views)})")
-    h, w = (resolution, resolution) if isinstance(resolution, int) else tuple(resolution)
+    h, w = size_hw(resolution)
     if h % 16 or w % 16 or h <= 0 or w <= 0:
         raise DataError(f"data.resolution: {h}x{w} must be positive multiples of 16")
     f = m.fringe.train_frequency if frequency is None else frequency

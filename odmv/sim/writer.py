@@ -36,7 +36,7 @@ from odmv.io.manifest import (
     Manifest,
     load_manifest,
 )
-from odmv.rig import Rig, check_views
+from odmv.rig import Rig, check_views, size_hw
 from odmv.sim.render import RenderConfig, Rendered, render_scene
 from odmv.sim.scenes import Scene, build_scene, choose_family, draw_spec, mesh_files_in
 
@@ -75,7 +75,7 @@ class SimSettings:
         kw: dict = {"out": Path(c["out"])}
         res = c.get("resolution")
         if res is not None:
-            kw["height_px"], kw["width_px"] = (res, res) if isinstance(res, int) else tuple(res)
+            kw["height_px"], kw["width_px"] = size_hw(res)
         for key in ("scenes", "seed"):
             if key in c:
                 kw[key] = int(c[key])
