@@ -34,7 +34,8 @@ from odmv.report import write_report
 from odmv.simulate import CONF_DIR
 
 CLASSICAL_DIR = "classical"
-RECORD = "reproduce.json"  # per row: its overrides and configuration hash
+RECORD = "reproduce.json"  # per row: the overrides that trained it
+QUIET = ["trainer.enable_progress_bar=false", "data.progress=false"]  # a run's log is a file
 
 
 class ReproduceError(ValueError):
@@ -49,9 +50,16 @@ class Job:
     key: str  # hash of the resolved training config
 
     def stale(self) -> bool:
-        """Whether the row on disk was trained with another configuration than today's."""
-        record = self.folder / RECORD
-        return record.is_file() and json.loads(record.read_text()).get("key") != self.key
+        """Whether the row on disk was trained with another configuration than today's (its
+        own saved config decides: code that only adds settings leaves finished rows valid)."""
+        saved = self.folder / ".hydra" / "config.yaml"
+        return saved.is_file() and _run_key(OmegaConf.load(saved)) != self.key
+
+    def interrupted(self) -> bool:
+        """Whether the row stopped before its end with a checkpoint of today's configuration."""
+        done = (self.folder / "metrics.json").is_file()
+        ckpt = (self.folder / "checkpoints" / "last.ckpt").is_file()
+        return ckpt and not done and (self.folder / ".hydra").is_dir() and not self.stale()
 
 
 def _compose(overrides: list[str], hydra_cfg: bool = False) -> DictConfig:
@@ -84,8 +92,10 @@ def _run_key(cfg: DictConfig) -> str:
     cfg = cfg.copy()
     cfg.paths.output_dir = "RUN"  # a run's own folder is not part of what it is
     d = OmegaConf.to_container(cfg, resolve=True)
-    for k in ("paths", "task_name", "test", "ckpt_path", "log_images", "seeds"):
+    for k in ("paths", "task_name", "test", "ckpt_path", "resume", "log_images", "seeds", "logger"):
         d.pop(k, None)
+    d["trainer"].pop("enable_progress_bar", None)  # how a run reports is not what it is
+    d["data"].pop("progress", None)
     return hashlib.sha1(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:8]
 
 
@@ -112,23 +122,23 @@ def plan(
 
 
 def _train(job: Job, protocol: str, extra: list[str]) -> dict:
-    """Train one row in a subprocess (a clean process per run); its log goes to train.out."""
-    if job.folder.exists():  # an interrupted row starts again from scratch
-        shutil.rmtree(job.folder)
+    """Train one row in a subprocess (a clean process per run); its log goes to train.out.
+    An interrupted row of today's configuration continues from its last checkpoint."""
     tmp = job.folder.with_name(f".{job.folder.name}.log")
     tmp.parent.mkdir(parents=True, exist_ok=True)
-    cmd = [
-        sys.executable,
-        "-m",
-        "odmv.train",
-        f"experiment={protocol}",
-        *extra,
-        *job.overrides,
-        f"hydra.run.dir={job.folder}",
-        "trainer.enable_progress_bar=false",
-        "data.progress=false",
-    ]
-    with tmp.open("w") as log:
+    if job.interrupted():
+        print(f"    continuing from {job.folder / 'checkpoints' / 'last.ckpt'}", flush=True)
+        # hydra.output_subdir=null: the run's own .hydra/config.yaml stays as it was
+        args = [f"resume={job.folder}", "hydra.output_subdir=null", *QUIET]
+        if (job.folder / "train.out").is_file():  # its log goes on in the same file
+            (job.folder / "train.out").replace(tmp)
+    else:
+        if job.folder.exists():
+            shutil.rmtree(job.folder)
+        tmp.unlink(missing_ok=True)
+        args = [f"experiment={protocol}", *extra, *job.overrides, *QUIET]
+    cmd = [sys.executable, "-m", "odmv.train", *args, f"hydra.run.dir={job.folder}"]
+    with tmp.open("a") as log:
         log.write(" ".join(cmd) + "\n")
         log.flush()
         proc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, check=False)
@@ -137,7 +147,7 @@ def _train(job: Job, protocol: str, extra: list[str]) -> dict:
     if proc.returncode != 0 or not (job.folder / "metrics.json").is_file():
         where = job.folder / "train.out" if job.folder.is_dir() else tmp
         raise ReproduceError(f"{where}: training failed (exit {proc.returncode})")
-    record = {"overrides": [f"experiment={protocol}", *extra, *job.overrides], "key": job.key}
+    record = {"overrides": [f"experiment={protocol}", *extra, *job.overrides]}
     (job.folder / RECORD).write_text(json.dumps(record, indent=1) + "\n")
     return json.loads((job.folder / "metrics.json").read_text())
 

@@ -129,7 +129,7 @@ def test_plan_trains_a_configuration_shared_by_tables_once(tmp_path):
 
 
 @pytest.mark.slow
-def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, tmp_path):
+def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, tmp_path, capsys):
     overrides = [
         "data=exr",
         f"root={tiny_dataset}",
@@ -160,6 +160,23 @@ def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, 
     stamps = {p: p.stat().st_mtime_ns for p in metrics}
     reproduce(cfg)  # everything is on disk: nothing is trained again
     assert {p: p.stat().st_mtime_ns for p in metrics} == stamps
+
+    # a row stopped before its end continues from its checkpoint in its own folder; a finished
+    # row whose saved configuration differs from today's is kept and named
+    cut, changed = runs / "odmvnet-s1-multitask-seed0", runs / "odmvnet-s2-multitask-seed0"
+    (cut / "metrics.json").unlink()
+    saved = cut / ".hydra" / "config.yaml"
+    before = saved.read_text()
+    edited = changed / ".hydra" / "config.yaml"
+    edited.write_text(edited.read_text().replace("lr: 0.001", "lr: 0.002"))
+    capsys.readouterr()
+    reproduce(cfg)
+    printed = capsys.readouterr().out
+    assert f"continuing from {cut / 'checkpoints' / 'last.ckpt'}" in printed
+    assert f"note: {changed.name} was trained with another configuration" in printed
+    assert "resume=" in (cut / "train.out").read_text() and saved.read_text() == before
+    assert (cut / "metrics.json").is_file()
+    assert [p for p in metrics if p.parent != cut and p.stat().st_mtime_ns != stamps[p]] == []
 
 
 def _reproduce_cfg(overrides, runs, out):
