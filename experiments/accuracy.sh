@@ -77,4 +77,10 @@ round6() {
   run s4-w16 widths.odmvnet=16
   run s1-w16 widths.odmvnet=16 views=1
 }
-"${@:-round6}"
+round7() {
+  # Parts taller than one period of the training fringe (10.6-12.1 mm of height) come out one
+  # fringe order low (docs/accuracy.md, height bands). Probe: the coarsest fringe (one period
+  # over the projector) alone, on UNet S = 1: the ambiguity goes, at 8x less phase per mm.
+  run unet-s1-coarse contender=unet_s1 data.fringe_frequency=0
+}
+"${@:-round7}"

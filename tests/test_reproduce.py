@@ -95,7 +95,7 @@ def test_sweeps_expand_to_the_tables_rows():
     assert cfg.model.name == "unet" and cfg.model.net.in_channels == 4 * 3  # with the reference
     assert cfg.model.net.base_width == 32  # baselines keep their published width
     cfg = _compose(["experiment=mini"])
-    assert cfg.model.net.base_width == 8 and cfg.data.resolution == 64
+    assert cfg.model.net.base_width == 16 and cfg.data.resolution == 64
     paper = _compose(["experiment=paper"])
     assert (paper.data.resolution, paper.data.batch_size, paper.trainer.max_epochs) == (480, 2, 200)
     assert paper.data.simulate.scenes == 252 and paper.model.net.base_width == 46
