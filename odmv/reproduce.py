@@ -94,8 +94,10 @@ def _run_key(cfg: DictConfig) -> str:
     d = OmegaConf.to_container(cfg, resolve=True)
     for k in ("paths", "task_name", "test", "ckpt_path", "resume", "log_images", "seeds", "logger"):
         d.pop(k, None)
-    d["trainer"].pop("enable_progress_bar", None)  # how a run reports is not what it is
-    d["data"].pop("progress", None)
+    d.pop("widths", None)  # this net's width is in model.net; the other nets' are not this run's
+    for setting in QUIET:  # how a run reports is not what it is
+        group, _, key = setting.partition("=")[0].rpartition(".")
+        d[group].pop(key, None)
     return hashlib.sha1(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:8]
 
 

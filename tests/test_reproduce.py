@@ -128,6 +128,14 @@ def test_plan_trains_a_configuration_shared_by_tables_once(tmp_path):
     assert names.count("odmvnet-s4-multitask-seed0") == 1
 
 
+def test_a_row_is_keyed_by_its_own_net_only(tmp_path):
+    """Changing ODMV-Net's width makes its rows stale, never the baselines' rows."""
+    today = {j.folder.name: j.key for j in plan("mini", ["models"], [0], [], tmp_path)}
+    wider = plan("mini", ["models"], [0], ["widths.odmvnet=24"], tmp_path)
+    changed = sorted(j.folder.name for j in wider if j.key != today[j.folder.name])
+    assert changed == ["odmvnet-s4-multitask-seed0"]
+
+
 @pytest.mark.slow
 def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, tmp_path, capsys):
     overrides = [
