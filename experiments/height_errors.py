@@ -6,16 +6,15 @@ Each argument is ``LABEL=GLOB`` (run folders holding test_predictions.npz). Heig
 above the base plane, taken as the largest ground-truth depth of the test split (the plane
 is the farthest surface the camera sees). Prints a markdown table: the share of valid pixels
 in each height band, then per label the MAE in each band, mean ± std over the matched runs.
-Labels cannot contain '='.
 """
 
 from __future__ import annotations
 
 import argparse
-import glob
 from pathlib import Path
 
 import numpy as np
+from summarize import run_groups  # this folder's sibling script: the same LABEL=GLOB rule
 
 BANDS_MM = [0.0, 0.5, 2.0, 5.0, 8.0, 12.0, np.inf]
 
@@ -46,10 +45,9 @@ def main() -> None:
     ]
     rows, share = [], None
     for group in args.groups:
-        label, _, pattern = group.partition("=")
-        folders = sorted(Path(p).parent for p in glob.glob(f"{pattern}/test_predictions.npz"))
+        label, folders = run_groups(group, "test_predictions.npz")
         if not folders:
-            raise SystemExit(f"error: {pattern}: no finished runs (no test_predictions.npz)")
+            raise SystemExit(f"error: {group}: no finished runs (no test_predictions.npz)")
         results = [band_errors(f, BANDS_MM) for f in folders]
         share = results[0][1]
         mae = np.stack([r[0] for r in results])

@@ -25,6 +25,12 @@ def _stat(values: list[float]) -> str:
     return f"{v.mean():.3f}" + (f" ± {v.std(ddof=1):.3f}" if len(v) > 1 else "")
 
 
+def run_groups(arg: str, marker: str) -> tuple[str, list[Path]]:
+    """``LABEL=GLOB`` as the label and the matched run folders that hold ``marker``."""
+    label, pattern = arg.rsplit("=", 1)  # labels may hold "=" (S=4), globs do not
+    return label, sorted(Path(p) for p in glob.glob(pattern) if (Path(p) / marker).is_file())
+
+
 def main(args: list[str]) -> int:
     if not args or any("=" not in a for a in args):
         print(__doc__, file=sys.stderr)
@@ -37,10 +43,7 @@ def main(args: list[str]) -> int:
     )
     print("|---|---:|" + "---:|" * (4 + len(families)))
     for arg in args:
-        label, pattern = arg.rsplit("=", 1)  # labels may hold "=" (S=4), globs do not
-        folders = sorted(
-            Path(p) for p in glob.glob(pattern) if (Path(p) / "metrics.json").is_file()
-        )
+        label, folders = run_groups(arg, "metrics.json")
         m = [json.loads((f / "metrics.json").read_text()) for f in folders]
         per_family: dict[str, list[float]] = {f: [] for f in families}
         worst = []
