@@ -44,7 +44,11 @@ def main() -> None:
     ap.add_argument("--resolution", type=int, default=None, help="default: the preset's size")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--precision", default="32", choices=("32", "bf16-mixed", "16-mixed"))
-    ap.add_argument("--channels-last", action="store_true", help="channels_last(_3d) memory")
+    ap.add_argument(
+        "--channels-last",
+        action="store_true",
+        help="channels_last(_3d) weights in 2D layers too (ODMV-Net's 3D ones are by default)",
+    )
     ap.add_argument("--compile", action="store_true", help="torch.compile the net")
     ap.add_argument("--compile-mode", default="max-autotune-no-cudagraphs")
     ap.add_argument("--cudnn-benchmark", action="store_true")
@@ -65,8 +69,11 @@ def main() -> None:
     device = torch.device(args.device)
     torch.backends.cudnn.benchmark = args.cudnn_benchmark
     module = build_module(cfg).to(device).train()
-    if args.channels_last:
-        module = module.to(memory_format=torch.channels_last_3d)
+    if args.channels_last:  # every conv weight, 2D and 3D (Module.to refuses a mix of ranks)
+        for p in module.parameters():
+            if p.ndim in (4, 5):
+                fmt = torch.channels_last if p.ndim == 4 else torch.channels_last_3d
+                p.data = p.data.contiguous(memory_format=fmt)
     net = torch.compile(module.net, mode=args.compile_mode) if args.compile else module.net
     weights = LossWeights(**cfg.loss)
     opt = torch.optim.Adam(module.parameters(), lr=1e-4)

@@ -173,3 +173,24 @@ def test_circular_view_padding_makes_the_net_equivariant_to_rotating_the_views()
             torch.testing.assert_close(b["views"], a["views"].roll(1, dims=1), atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="view_padding"):
         _tiny(view_padding="reflect")
+
+
+def test_channels_last_gives_the_same_outputs_and_gradients():
+    x = torch.rand(2, 4, 32, 32) * 2 - 1
+    results = []
+    for fmt in ("contiguous", "channels_last"):
+        net = _tiny(memory_format=fmt, norm="group", stem_stride=2).train()
+        conv3d = [m.weight for m in net.modules() if isinstance(m, torch.nn.Conv3d)]
+        assert all(
+            w.is_contiguous(memory_format=torch.channels_last_3d) == (fmt == "channels_last")
+            for w in conv3d
+            if w.shape[1] > 1 and w.shape[-3:].numel() > 1  # else both layouts are one
+        )
+        out = net(x)
+        (out["depth"].sum() + out["views"].square().sum()).backward()
+        grads = torch.cat([p.grad.flatten() for p in net.parameters() if p.grad is not None])
+        results.append((out["depth"].detach(), grads))
+    torch.testing.assert_close(results[1][0], results[0][0], atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(results[1][1], results[0][1], atol=1e-4, rtol=1e-3)
+    with pytest.raises(ValueError, match="memory_format"):
+        _tiny(memory_format="blocked")

@@ -92,6 +92,24 @@ def set_view_padding(net: nn.Module, mode: str) -> nn.Module:
     return net
 
 
+MEMORY_FORMATS = ("contiguous", "channels_last")
+
+
+def set_memory_format(net: nn.Module, fmt: str) -> nn.Module:
+    """``"channels_last"`` stores every 3D convolution's weight channels-last (channels
+    innermost); oneDNN and cuDNN then run those convolutions, and the activations they pass on,
+    in that layout. The values are the same; on a 2-core CPU the ODMV-Net training step is
+    about a quarter faster, most of it in the backward of the wide, few-channel layers
+    (docs/performance.md). 2D layers keep their layout: no gain was measured for them."""
+    if fmt not in MEMORY_FORMATS:
+        raise ValueError(f"memory_format {fmt!r} unknown; choose from {list(MEMORY_FORMATS)}")
+    if fmt == "channels_last":
+        for m in net.modules():
+            if isinstance(m, nn.Conv3d | nn.ConvTranspose3d):
+                m.weight.data = m.weight.data.contiguous(memory_format=torch.channels_last_3d)
+    return net
+
+
 class Float32Conv2d(nn.Conv2d):
     """A regression output layer that stays float32 under autocast: in bf16 a normalized depth
     near 1 has steps of 2**-7, i.e. 0.08 mm at the default 10 mm half range."""

@@ -46,6 +46,7 @@ from odmv.models.blocks import (
     RegressionHead,
     ResBlock3d,
     conv_bn_act,
+    set_memory_format,
     set_norm,
     set_view_padding,
     stage3d,
@@ -133,7 +134,9 @@ class ODMVNet(nn.Module):
     each switch left None follows that row: ``residual`` and ``attention_gates`` ("+RB&AG"),
     ``aspp``, ``rve``, ``ocd_oaf``, ``ssvr`` ("+Multi-task"). ``norm``: "batch" (the paper) or
     "group" (see :func:`odmv.models.blocks.set_norm`). ``view_padding``: "zeros" or "circular"
-    (the view axis as a ring, :func:`odmv.models.blocks.set_view_padding`)."""
+    (the view axis as a ring, :func:`odmv.models.blocks.set_view_padding`). ``memory_format``:
+    "channels_last" (faster, the same values) or "contiguous"
+    (:func:`odmv.models.blocks.set_memory_format`)."""
 
     def __init__(
         self,
@@ -152,6 +155,7 @@ class ODMVNet(nn.Module):
         view_channels: int = 1,
         stem_stride: int = 1,
         view_padding: str = "zeros",
+        memory_format: str = "channels_last",
     ):
         super().__init__()
         if ablation not in ABLATION_ROWS:
@@ -217,6 +221,7 @@ class ODMVNet(nn.Module):
         )
         set_norm(self, norm)
         set_view_padding(self, view_padding)
+        set_memory_format(self, memory_format)
 
     def _run(self, module, *args):
         if self.checkpointing and self.training and torch.is_grad_enabled():
