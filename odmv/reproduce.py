@@ -94,7 +94,8 @@ def _run_key(cfg: DictConfig) -> str:
     d = OmegaConf.to_container(cfg, resolve=True)
     for k in ("paths", "task_name", "test", "ckpt_path", "resume", "log_images", "seeds", "logger"):
         d.pop(k, None)
-    d.pop("widths", None)  # this net's width is in model.net; the other nets' are not this run's
+    for per_net in ("widths", "alphas"):  # this net's entry is in model.net / loss; the others'
+        d.pop(per_net, None)  # are not this run's
     for setting in QUIET:  # how a run reports is not what it is
         group, _, key = setting.partition("=")[0].rpartition(".")
         d[group].pop(key, None)
