@@ -97,10 +97,11 @@ MEMORY_FORMATS = ("contiguous", "channels_last")
 
 def set_memory_format(net: nn.Module, fmt: str) -> nn.Module:
     """``"channels_last"`` stores every 3D convolution's weight channels-last (channels
-    innermost); oneDNN and cuDNN then run those convolutions, and the activations they pass on,
-    in that layout. The values are the same; on a 2-core CPU the ODMV-Net training step is
-    about a quarter faster, most of it in the backward of the wide, few-channel layers
-    (docs/performance.md). 2D layers keep their layout: no gain was measured for them."""
+    innermost); the convolution backend then runs those convolutions, and the activations they
+    pass on, in that layout. The values are the same; on a 2-core CPU (oneDNN) the ODMV-Net
+    training step is 20-26 % faster, most of it in the backward of the wide, few-channel layers
+    (docs/performance.md); on a GPU it is unmeasured. 2D layers keep their layout: no clear
+    gain was measured for them."""
     if fmt not in MEMORY_FORMATS:
         raise ValueError(f"memory_format {fmt!r} unknown; choose from {list(MEMORY_FORMATS)}")
     if fmt == "channels_last":
