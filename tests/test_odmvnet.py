@@ -176,6 +176,9 @@ def test_circular_view_padding_makes_the_net_equivariant_to_rotating_the_views()
 
 
 def test_channels_last_gives_the_same_outputs_and_gradients():
+    # a fixed input: on some inputs float rounding flips a max-pool or amax choice, which moves
+    # a few gradients as much as running the contiguous net on 1 thread instead of 2 does
+    torch.manual_seed(0)
     x = torch.rand(2, 4, 32, 32) * 2 - 1
     results = []
     for fmt in ("contiguous", "channels_last"):
@@ -191,6 +194,8 @@ def test_channels_last_gives_the_same_outputs_and_gradients():
         grads = torch.cat([p.grad.flatten() for p in net.parameters() if p.grad is not None])
         results.append((out["depth"].detach(), grads))
     torch.testing.assert_close(results[1][0], results[0][0], atol=1e-5, rtol=1e-4)
-    torch.testing.assert_close(results[1][1], results[0][1], atol=1e-4, rtol=1e-3)
+    # gradients span 1e-6 to several 1e3: float32 rounding is judged against the largest
+    grads = results[0][1]
+    torch.testing.assert_close(results[1][1], grads, atol=1e-5 * grads.abs().max(), rtol=1e-3)
     with pytest.raises(ValueError, match="memory_format"):
         _tiny(memory_format="blocked")
