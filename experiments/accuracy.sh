@@ -107,4 +107,13 @@ round10() {
   # round 6) within 10 minutes; with L1 now the preset's loss.
   EXP=quickstart run demo-w12-l1 widths.odmvnet=12
 }
-"${@:-round10}"
+round11() {
+  # The tall parts (round 7, 9): at the 8-period fringe one period spans 10.6-12.1 mm of height,
+  # so parts near or above it are ambiguous by whole periods in one image. At 4 periods (480 px)
+  # a period spans about twice that, more than the 20 mm working volume, at half the phase per
+  # mm. The rendered sequence becomes 1, 4 and 8 periods (the 64-period one aliases at 64 px).
+  # Screened on UNet S = 1; worse in both seeds, so ODMV-Net was not run with it.
+  local p4=('+data.simulate.fringe.periods_px=[1920.0,480.0,240.0]')
+  run p4-unet-s1 contender=unet_s1 "${p4[@]}"
+}
+"${@:-round11}"

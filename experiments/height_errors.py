@@ -2,10 +2,15 @@
 
     python experiments/height_errors.py 'UNet=outputs/reproduce/mini/unet-s1-seed*' ...
 
-Each argument is ``LABEL=GLOB`` (run folders holding test_predictions.npz). Heights are in mm
-above the base plane, taken as the largest ground-truth depth of the test split (the plane
+Each argument is ``LABEL=GLOB`` (run folders holding test_predictions.npz, or --file).
+Heights are in mm above the base plane, the largest ground-truth depth of the split (the plane
 is the farthest surface the camera sees). Prints a markdown table: the share of valid pixels
 in each height band, then per label the MAE in each band, mean ± std over the matched runs.
+
+    python experiments/height_errors.py --tall 8 'UNet=outputs/reproduce/mini/unet-s1-seed*'
+
+adds, per test scene with pixels higher than 8 mm, how many there are and the mean true and
+predicted height there (mean over each label's runs): which parts the tall-band error is.
 """
 
 from __future__ import annotations
@@ -19,10 +24,14 @@ from summarize import run_groups  # this folder's sibling script: the same LABEL
 BANDS_MM = [0.0, 0.5, 2.0, 5.0, 8.0, 12.0, np.inf]
 
 
-def band_errors(folder: Path, bands: list[float]) -> tuple[np.ndarray, np.ndarray]:
-    """Per band: MAE (mm) and the share of valid pixels, for one run's test predictions."""
-    with np.load(folder / "test_predictions.npz") as z:
-        pred, depth = z["pred_mm"], z["depth_mm"]
+def load_predictions(folder: Path, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Scene ids, predicted and true depth maps (mm) of one run's predictions file."""
+    with np.load(folder / name) as z:
+        return z["scene_id"], z["pred_mm"], z["depth_mm"]
+
+
+def band_errors(pred: np.ndarray, depth: np.ndarray, bands: list[float]):
+    """Per band: MAE (mm) and the share of valid pixels."""
     valid = np.isfinite(depth)
     height = np.nanmax(depth) - depth
     err = np.abs(pred - depth)
@@ -35,20 +44,61 @@ def band_errors(folder: Path, bands: list[float]) -> tuple[np.ndarray, np.ndarra
     return np.array(mae), np.array(share)
 
 
+def tall_scenes(ids, pred, depth, above_mm: float) -> dict[str, tuple[int, float, float]]:
+    """Per scene with pixels above ``above_mm``: (pixels, mean true height, mean predicted
+    height) there, heights in mm above the base plane as in :func:`band_errors`."""
+    plane = np.nanmax(depth)
+    out = {}
+    for sid, p, d in zip(ids, pred, depth, strict=True):
+        m = np.isfinite(d) & (plane - d > above_mm) & np.isfinite(p)
+        if m.any():
+            true_mm, pred_mm = (plane - d[m]).mean(), (plane - p[m]).mean()
+            out[str(sid)] = (int(m.sum()), float(true_mm), float(pred_mm))
+    return out
+
+
+def print_tall(groups: list[tuple[str, list]], above_mm: float) -> None:
+    """``groups``: (label, the runs' loaded predictions)."""
+    per_label = [(label, [tall_scenes(*r, above_mm) for r in runs]) for label, runs in groups]
+    scenes = sorted({s for _, runs in per_label for r in runs for s in r})
+    print(
+        f"\n| scene | pixels > {above_mm:g} mm | true height (mm) | "
+        + " | ".join(f"{label}: predicted (mm)" for label, _ in per_label)
+        + " |"
+    )
+    print("|---|---:|---:|" + "---:|" * len(per_label))
+    for s in scenes:
+        first = next(r[s] for _, runs in per_label for r in runs if s in r)
+        cells = []
+        for _, runs in per_label:
+            seen = [r[s][2] for r in runs if s in r]
+            cells.append(f"{np.mean(seen):.1f}" if seen else "–")
+        print(f"| {s} | {first[0]} | {first[1]:.1f} | " + " | ".join(cells) + " |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("groups", nargs="+", metavar="LABEL=GLOB")
+    ap.add_argument("--tall", type=float, metavar="MM", help="per scene: the pixels above MM")
+    ap.add_argument(
+        "--file",
+        default="test_predictions.npz",
+        help="predictions file in each run folder (experiments/split_predictions.py writes "
+        "train_predictions.npz and val_predictions.npz)",
+    )
     args = ap.parse_args()
     names = [
         f"{lo:g}-{hi:g} mm" if np.isfinite(hi) else f"> {lo:g} mm"
         for lo, hi in zip(BANDS_MM[:-1], BANDS_MM[1:], strict=True)
     ]
-    rows, share = [], None
+    rows, share, groups = [], None, []
     for group in args.groups:
-        label, folders = run_groups(group, "test_predictions.npz")
+        label, folders = run_groups(group, args.file)
         if not folders:
-            raise SystemExit(f"error: {group}: no finished runs (no test_predictions.npz)")
-        results = [band_errors(f, BANDS_MM) for f in folders]
+            raise SystemExit(f"error: {group}: no finished runs (no {args.file})")
+        runs = [load_predictions(f, args.file) for f in folders]
+        groups.append((label, runs))
+        results = [band_errors(pred, depth, BANDS_MM) for _, pred, depth in runs]
         share = results[0][1]
         mae = np.stack([r[0] for r in results])
         std = mae.std(axis=0, ddof=1) if len(mae) > 1 else np.zeros(mae.shape[1])
@@ -58,6 +108,8 @@ def main() -> None:
     print("|---|---:|" + "---:|" * len(names))
     print("| share of valid pixels | – | " + " | ".join(f"{s * 100:.1f} %" for s in share) + " |")
     print("\n".join(rows))
+    if args.tall is not None:
+        print_tall(groups, args.tall)
 
 
 if __name__ == "__main__":
