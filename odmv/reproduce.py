@@ -99,7 +99,18 @@ def _run_key(cfg: DictConfig) -> str:
     for setting in QUIET:  # how a run reports is not what it is
         group, _, key = setting.partition("=")[0].rpartition(".")
         d[group].pop(key, None)
+    d = _without_nulls(d)
     return hashlib.sha1(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:8]
+
+
+def _without_nulls(d):
+    """``d`` without its null settings: a setting added with a null default (its off state)
+    leaves the rows trained before it valid, while any value set is part of the key."""
+    if isinstance(d, dict):
+        return {k: _without_nulls(v) for k, v in d.items() if v is not None}
+    if isinstance(d, list):
+        return [_without_nulls(v) for v in d]
+    return d
 
 
 def plan(

@@ -121,9 +121,13 @@ def test_group_norm_switch_replaces_every_batch_norm():
         ODMVNet(base_width=4, blocks=1, norm="layer")
 
 
+@pytest.mark.parametrize("full_width", [None, 6])
 @pytest.mark.parametrize("row", ["multitask", "aspp"])  # the RVE and the plain stem
-def test_strided_stem_keeps_the_output_scales(row):
-    net = _tiny(stem_stride=2, ablation=row).train()
+def test_strided_stem_keeps_the_output_scales(row, full_width):
+    net = _tiny(stem_stride=2, ablation=row, full_width=full_width).train()
+    fw = full_width or 2  # base width 4: half of it by default
+    assert net.decoder_full[0].out_channels == fw and net.up_full.out_channels == fw
+    assert net.stem.full[0].out_channels == fw and net.heads[0][0][0].in_channels == fw
     x = torch.rand(2, 3, 64, 64) * 2 - 1
     out = net(x)
     assert out["depth"].shape == (2, 1, 64, 64)
@@ -139,6 +143,15 @@ def test_strided_stem_keeps_the_output_scales(row):
     assert not missing, missing
     with pytest.raises(ValueError, match="divisible by 32"):
         net(torch.rand(1, 3, 48, 48))
+
+
+def test_full_width_needs_the_strided_stem():
+    with pytest.raises(ValueError, match="only with stem_stride 2"):
+        _tiny(full_width=8)
+    # unset, the strided net is the one trained before the setting existed (its checkpoints
+    # load): the parameter count of that net
+    assert count_parameters(_tiny(stem_stride=2)) == 717_952
+    assert count_parameters(_tiny(stem_stride=2, full_width=4)) > 717_952
 
 
 def test_fusion_gives_a_view_the_occlusion_detector_rejects_almost_no_weight():

@@ -10,6 +10,7 @@ import pytest
 import torch
 from helpers import RIG, render
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
 from odmv.classical import classical_row
 from odmv.data.normalize import Normalization
@@ -141,6 +142,21 @@ def test_a_row_is_keyed_by_its_own_net_only(tmp_path, setting):
     assert changed == ["odmvnet-s4-multitask-seed0"]
 
 
+def test_a_setting_added_as_null_keeps_finished_rows_valid(tmp_path):
+    """A row saved before a setting existed is not stale while that setting is null today;
+    giving it a value is a change."""
+    job = plan("mini", ["views"], [0], [], tmp_path)[0]
+    saved = _compose(["experiment=mini", *job.overrides])
+    assert saved.model.net.full_width is None
+    OmegaConf.set_struct(saved, False)
+    del saved.model.net["full_width"]  # the config as written before the setting existed
+    (job.folder / ".hydra").mkdir(parents=True)
+    OmegaConf.save(saved, job.folder / ".hydra" / "config.yaml")
+    assert not job.stale()
+    changed = plan("mini", ["views"], [0], ["model.net.full_width=16"], tmp_path)[0]
+    assert changed.folder == job.folder and changed.stale()
+
+
 @pytest.mark.slow
 def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, tmp_path, capsys):
     overrides = [
@@ -193,8 +209,6 @@ def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, 
 
 
 def _reproduce_cfg(overrides, runs, out):
-    from omegaconf import OmegaConf
-
     return OmegaConf.create(
         {
             "protocol": "mini",

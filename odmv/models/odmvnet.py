@@ -10,11 +10,11 @@ Choices where the paper (Sec. II.A, Figs. 1-2) is silent, as implemented here:
   With ``rve`` off, a plain 3x3x3 conv stem. ``stem_stride`` 1 (default) keeps the whole 3D
   backbone at full resolution. ``stem_stride`` 2 (the paper's "strided convolutions"; 4x less
   backbone compute) runs the backbone at half resolution: the stem keeps a full-resolution
-  feature (half the base width), a transposed (1,2,2) convolution brings the last decoder
-  stage back to full resolution, one 3D block merges it with that feature, and Main is fused
-  and regressed there; Aux1 and Aux2 then sit on the decoder's 1/2 and 1/4 stages, the
-  paper's scales. The plain stem (Table I rows without RVE) strides the same way, so the rows
-  differ in modules, not in resolution.
+  feature (``full_width`` channels, default half the base width), a transposed (1,2,2)
+  convolution brings the last decoder stage back to full resolution, one 3D block merges it
+  with that feature, and Main is fused and regressed there; Aux1 and Aux2 then sit on the
+  decoder's 1/2 and 1/4 stages, the paper's scales. The plain stem (Table I rows without
+  RVE) strides the same way, so the rows differ in modules, not in resolution.
 - Backbone: four encoder stages (full, 1/2, 1/4, 1/8 resolution) of ``blocks`` 3D residual blocks,
   max-pooling (1,2,2) between them, a bottleneck at 1/16, and a mirrored decoder with transposed
   (1,2,2) convolutions. Without ``residual``, stages are vanilla double conv-BN-ReLU blocks.
@@ -82,12 +82,14 @@ ABLATION_ROWS: dict[str, dict[str, bool]] = _rows()
 class ResidualViewEncoder(nn.Module):
     """Per-view 2D features (shared weights), stacked into a volume, refined across views."""
 
-    def __init__(self, cout: int, stride: int = 1, cin: int = 1):
+    def __init__(self, cout: int, stride: int = 1, cin: int = 1, full: int | None = None):
         super().__init__()
         self.cin = cin
-        # stride 2: a full-resolution layer first, whose features the Main output gets back
-        self.full = conv_bn_act(cin, cout // 2, dims=2) if stride > 1 else None
-        first = cout // 2 if stride > 1 else cin
+        # stride 2: a full-resolution layer first (``full`` channels, default cout / 2), whose
+        # features the Main output gets back
+        full = full or cout // 2
+        self.full = conv_bn_act(cin, full, dims=2) if stride > 1 else None
+        first = full if stride > 1 else cin
         self.per_view = nn.Sequential(
             conv_bn_act(first, cout, stride=stride, dims=2), conv_bn_act(cout, cout, dims=2)
         )
@@ -102,7 +104,7 @@ class ResidualViewEncoder(nn.Module):
 
     def forward(self, x):
         """B x (S * cin) x H x W -> (volume B x C x S x h x w, the full-resolution volume
-        B x C/2 x S x H x W with stride 2, else None)."""
+        B x full x S x H x W with stride 2, else None)."""
         b, sc, h, w = x.shape
         f = x.reshape(b * (sc // self.cin), self.cin, h, w)
         full = None
@@ -117,10 +119,11 @@ class PlainStem(nn.Module):
     """The stem without RVE: 3x3x3 convolutions over the views' channels; with stride 2 a
     full-resolution layer first, then a (1,2,2)-strided one (see the module docstring)."""
 
-    def __init__(self, cout: int, stride: int = 1, cin: int = 1):
+    def __init__(self, cout: int, stride: int = 1, cin: int = 1, full: int | None = None):
         super().__init__()
-        self.full = conv_bn_act(cin, cout // 2) if stride > 1 else None
-        first = cout // 2 if stride > 1 else cin
+        full = full or cout // 2
+        self.full = conv_bn_act(cin, full) if stride > 1 else None
+        first = full if stride > 1 else cin
         self.conv = conv_bn_act(first, cout, stride=(1, stride, stride))
 
     def forward(self, vol):
@@ -136,7 +139,8 @@ class ODMVNet(nn.Module):
     "group" (see :func:`odmv.models.blocks.set_norm`). ``view_padding``: "zeros" or "circular"
     (the view axis as a ring, :func:`odmv.models.blocks.set_view_padding`). ``memory_format``:
     "channels_last" (faster, the same values) or "contiguous"
-    (:func:`odmv.models.blocks.set_memory_format`)."""
+    (:func:`odmv.models.blocks.set_memory_format`). ``full_width``: channels of the
+    full-resolution stage with ``stem_stride`` 2 (default None: base_width // 2)."""
 
     def __init__(
         self,
@@ -156,6 +160,7 @@ class ODMVNet(nn.Module):
         stem_stride: int = 1,
         view_padding: str = "zeros",
         memory_format: str = "channels_last",
+        full_width: int | None = None,
     ):
         super().__init__()
         if ablation not in ABLATION_ROWS:
@@ -174,15 +179,20 @@ class ODMVNet(nn.Module):
         residual, attention_gates, aspp, rve, ocd_oaf, ssvr = (self.flags[k] for k in SWITCHES)
         if stem_stride not in (1, 2):
             raise ValueError(f"stem_stride {stem_stride} unsupported; choose 1 or 2")
+        if full_width is not None and (stem_stride == 1 or full_width < 1):
+            raise ValueError(
+                f"full_width {full_width}: a positive channel count, and only with stem_stride 2"
+            )
         self.stride = stem_stride
         w = [base_width * 2**i for i in range(LEVELS + 1)]
+        fw = full_width or w[0] // 2  # the full-resolution stage at stride 2
         self.widths = w
         self.checkpointing = activation_checkpointing
         self.view_channels = view_channels
         self.stem = (
-            ResidualViewEncoder(w[0], stem_stride, view_channels)
+            ResidualViewEncoder(w[0], stem_stride, view_channels, fw)
             if rve
-            else PlainStem(w[0], stem_stride, view_channels)
+            else PlainStem(w[0], stem_stride, view_channels, fw)
         )
         self.encoder = nn.ModuleList(
             stage3d(w[max(i - 1, 0)], w[i], blocks, residual) for i in range(LEVELS)
@@ -206,10 +216,10 @@ class ODMVNet(nn.Module):
         self.ocd = nn.ModuleList(OcclusionDetector(w[i]) for i in levels) if ocd_oaf else None
         # stride 2: the full-resolution stage after the decoder (see the module docstring)
         if stem_stride > 1:
-            self.up_full = nn.ConvTranspose3d(w[0], w[0] // 2, (1, 2, 2), stride=(1, 2, 2))
-            self.decoder_full = conv_bn_act(w[0], w[0] // 2)
+            self.up_full = nn.ConvTranspose3d(w[0], fw, (1, 2, 2), stride=(1, 2, 2))
+            self.decoder_full = conv_bn_act(2 * fw, fw)
         # output heads Main, Aux1, Aux2: the channels of the stages they read
-        head_ch = [w[0], w[1], w[2]] if stem_stride == 1 else [w[0] // 2, w[0], w[1]]
+        head_ch = [w[0], w[1], w[2]] if stem_stride == 1 else [fw, w[0], w[1]]
         self.fusion = nn.ModuleList(OcclusionAwareFusion(c) for c in head_ch) if ocd_oaf else None
         self.heads = nn.ModuleList(RegressionHead(c) for c in head_ch)
         self.ssvr = (
