@@ -17,23 +17,15 @@ import argparse
 import json
 from pathlib import Path
 
-import hydra
 import numpy as np
 from height_errors import BANDS_MM, load_predictions
+from split_predictions import run_data  # this folder's sibling scripts
 from summarize import run_groups
-
-import odmv.config  # noqa: F401  (registers the config resolvers)
-from odmv.module import load_module
 
 
 def test_masks(run: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Per test scene: (shadowed, lit in the first view) as boolean H x W maps."""
-    module = load_module(Path(json.loads((run / "metrics.json").read_text())["best_checkpoint"]))
-    data = dict(module.hparams.data_cfg)
-    data.update(progress=False, render=False, simulate=None, views=["right", "down", "left", "up"])
-    dm = hydra.utils.instantiate(data, _convert_="all")
-    dm.prepare_data()
-    dm.setup("test")
+    _, dm = run_data(run, "test", views=["right", "down", "left", "up"])
     out = {}
     for sample in dm.datasets["test"]:
         shadowed = sample["shadowed"][0].numpy() > 0.5

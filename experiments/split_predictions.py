@@ -25,8 +25,9 @@ import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.module import load_module, net_input
 
 
-def split_predictions(run: Path, split: str) -> tuple[Path, float]:
-    """Predict ``split`` with ``run``'s best checkpoint; returns the file written and the MAE."""
+def run_data(run: Path, stage: str, views: list[str] | None = None):
+    """A finished run's best checkpoint (eval mode) and its data module set up for ``stage``,
+    with the run's data settings (``views``: other views than the run's)."""
     metrics = run / "metrics.json"
     if not metrics.is_file():
         raise SystemExit(f"error: {run}: no metrics.json (not a finished run)")
@@ -35,10 +36,17 @@ def split_predictions(run: Path, split: str) -> tuple[Path, float]:
         ckpt = run / "checkpoints" / ckpt.name  # the run folder was moved
     module = load_module(ckpt).eval()
     data = dict(module.hparams.data_cfg)
-    data.update(progress=False, render=False, simulate=None, views=list(module.hparams.views))
+    views = list(module.hparams.views) if views is None else views
+    data.update(progress=False, render=False, simulate=None, views=views)
     dm = hydra.utils.instantiate(data, _convert_="all")
     dm.prepare_data()
-    dm.setup("fit")
+    dm.setup(stage)
+    return module, dm
+
+
+def split_predictions(run: Path, split: str) -> tuple[Path, float]:
+    """Predict ``split`` with ``run``'s best checkpoint; returns the file written and the MAE."""
+    module, dm = run_data(run, "fit")
     ids, preds, depths = [], [], []
     with torch.no_grad():
         for batch in dm._loader(split, shuffle=False):
