@@ -41,10 +41,30 @@ def constant_predictor_errors(dm, value_mm: float) -> dict[str, float]:
     return {k: float(v) for k, v in metric.compute().items() if k != "pixels"}
 
 
-def family_errors(out_dir: Path, const_mm: float) -> dict[str, float]:
+def constant_depth_mm(saved: dict, dm) -> float | None:
+    """The constant predictor's depth (mm): the mean training depth of the dataset the net was
+    trained on (the checkpoint's), so a test on another dataset is scored against the same
+    constant; else the tested dataset's own training split; None where neither is at hand."""
+    root = saved.get("root")
+    if (
+        root
+        and Path(root).resolve() != Path(dm.root).resolve()
+        and (Path(root) / MANIFEST).is_file()
+    ):
+        own = hydra.utils.instantiate(
+            {**saved, "progress": False, "render": False, "simulate": None}, _convert_="all"
+        )
+        const = own.mean_depth_mm("train")
+        if const is not None:
+            return const
+    return dm.mean_depth_mm("train")
+
+
+def family_errors(out_dir: Path, const_mm: float | None) -> dict[str, float]:
     """MAE in mm per scene family over the test pixels, of the model
     (``family/<family>/mae_mm``) and of the constant predictor
-    (``family/<family>/constant_mae_mm``), from the per-scene outputs the test wrote."""
+    (``family/<family>/constant_mae_mm``, unless ``const_mm`` is None), from the per-scene
+    outputs the test wrote."""
     with (out_dir / SCENES_CSV).open() as fh:
         family = {r["scene"]: r["family"] or "unlabelled" for r in csv.DictReader(fh)}
     pred = np.load(out_dir / PREDICTIONS)
@@ -54,7 +74,8 @@ def family_errors(out_dir: Path, const_mm: float) -> dict[str, float]:
         gt, p = pred["depth_mm"][pick].astype(np.float64), pred["pred_mm"][pick]
         valid = np.isfinite(gt)
         out[f"family/{fam}/mae_mm"] = float(np.abs(p[valid] - gt[valid]).mean())
-        out[f"family/{fam}/constant_mae_mm"] = float(np.abs(const_mm - gt[valid]).mean())
+        if const_mm is not None:
+            out[f"family/{fam}/constant_mae_mm"] = float(np.abs(const_mm - gt[valid]).mean())
     return out
 
 
@@ -163,9 +184,11 @@ def evaluate(cfg: DictConfig, overrides: list[str] | None = None) -> dict:
     module.test_dir = out_dir
     results = trainer.test(module, datamodule=dm, verbose=False)[0]
     metrics = {k: float(v) for k, v in results.items()}
-    const = dm.mean_depth_mm("train")
-    metrics.update({f"constant/{k}": v for k, v in constant_predictor_errors(dm, const).items()})
-    metrics["constant/depth_mm"] = const
+    const = constant_depth_mm(dict(module.hparams.data_cfg or {}), dm)
+    if const is not None:
+        errors = constant_predictor_errors(dm, const)
+        metrics.update({f"constant/{k}": v for k, v in errors.items()})
+        metrics["constant/depth_mm"] = const
     metrics.update(family_errors(out_dir, const))
     out_dir.mkdir(parents=True, exist_ok=True)
     write_json(out_dir / "metrics.json", metrics)
@@ -194,17 +217,23 @@ def report(metrics: dict) -> str:
     ]
     lines = []
     for fam in families:
-        model, const = metrics[f"family/{fam}/mae_mm"], metrics[f"family/{fam}/constant_mae_mm"]
-        lines.append(
-            f"  {fam:<10}: MAE {model:.4f} mm, constant {const:.4f} mm ({const / model:.1f}x)"
-        )
+        model = metrics[f"family/{fam}/mae_mm"]
+        const = metrics.get(f"family/{fam}/constant_mae_mm")
+        vs = "" if const is None else f", constant {const:.4f} mm ({const / model:.1f}x)"
+        lines.append(f"  {fam:<10}: MAE {model:.4f} mm{vs}")
     tail = "\n".join(["per scene family:", *lines]) if lines else ""
+    constant = (
+        f"constant  : MAE {metrics['constant/mae_mm']:.4f} mm, "
+        f"RMSE {metrics['constant/rmse_mm']:.4f} mm (predicting "
+        f"{metrics['constant/depth_mm']:.3f} mm everywhere)"
+        if "constant/depth_mm" in metrics
+        else "constant  : none (no training scenes here, nor the checkpoint's dataset on disk)"
+    )
     return (
         f"model     : MAE {metrics['test/mae_mm']:.4f} mm, RMSE {metrics['test/rmse_mm']:.4f} mm"
         f" (shadowed pixels: MAE {metrics['test/mae_mm_shadowed']:.4f} mm)\n"
-        f"constant  : MAE {metrics['constant/mae_mm']:.4f} mm, "
-        f"RMSE {metrics['constant/rmse_mm']:.4f} mm (predicting "
-        f"{metrics['constant/depth_mm']:.3f} mm everywhere)" + ("\n" + tail if tail else "")
+        + constant
+        + ("\n" + tail if tail else "")
     )
 
 

@@ -18,7 +18,7 @@ from tensorboard.plugins.hparams import plugin_data_pb2
 import odmv.sim.writer as writer
 from odmv.checkpoint import CheckpointError
 from odmv.data.dataset import DataError
-from odmv.evaluate import evaluate
+from odmv.evaluate import evaluate, report
 from odmv.module import load_module
 from odmv.sim.scenes import SceneError
 from odmv.sim.writer import SimSettings, SimulationError, simulate
@@ -156,6 +156,63 @@ def test_evaluate_keeps_the_checkpoint_data_settings(trained, dataset_copy, tmp_
     assert 140 < em["constant/depth_mm"] < 150
     caches = [p.name for p in (tmp_path / "cache").iterdir()]
     assert caches and all("-test-" in name for name in caches)  # the train split not decoded
+
+
+def test_evaluate_on_a_test_only_dataset_keeps_the_training_constant(
+    trained, dataset_copy, tmp_path
+):
+    """A held-out dataset labelled test only has no training depth of its own: the constant
+    predictor is the mean training depth of the checkpoint's dataset, and none where that
+    dataset is gone too."""
+    _, metrics = trained
+    manifest = dataset_copy / "manifest.json"
+    m = json.loads(manifest.read_text())
+    for scene in m["scenes"]:
+        scene["split"] = "test"
+    manifest.write_text(json.dumps(m))
+
+    def run(ckpt, name):
+        overrides = [f"root={dataset_copy}", f"data.cache_dir={tmp_path / 'cache'}"]
+        cfg = compose_config(
+            "evaluate",
+            [
+                f"ckpt_path={ckpt}",
+                f"paths.output_dir={tmp_path / name}",
+                "figures=0",
+                "accelerator=cpu",
+                "progress=false",
+                *overrides,
+            ],
+        )
+        return evaluate(cfg, overrides)
+
+    own = run(metrics["best_checkpoint"], "own")  # the checkpoint's dataset, its own test split
+    base = evaluate(
+        compose_config(
+            "evaluate",
+            [
+                f"ckpt_path={metrics['best_checkpoint']}",
+                f"paths.output_dir={tmp_path / 'b'}",
+                "figures=0",
+                "accelerator=cpu",
+                "progress=false",
+            ],
+        ),
+        [],
+    )
+    assert own["constant/depth_mm"] == pytest.approx(base["constant/depth_mm"], rel=1e-9)
+    families = [k for k in own if k.startswith("family/") and k.endswith("/mae_mm")]
+    families = [k for k in families if "constant" not in k]
+    assert families and all(k.replace("/mae_mm", "/constant_mae_mm") in own for k in families)
+
+    ckpt = torch.load(metrics["best_checkpoint"], weights_only=True)
+    ckpt["hyper_parameters"]["data_cfg"]["root"] = str(tmp_path / "gone")
+    orphan = tmp_path / "orphan.ckpt"
+    torch.save(ckpt, orphan)
+    alone = run(orphan, "alone")
+    assert not any(k.startswith("constant/") or k.endswith("/constant_mae_mm") for k in alone)
+    assert alone["test/mae_mm"] > 0
+    assert "constant  : none" in report(alone)
 
 
 def test_evaluate_never_renders_a_missing_dataset(trained, tmp_path):

@@ -174,9 +174,10 @@ class FPPDataModule(L.LightningDataModule):
         self.splits = split_scenes(m, self.split_fractions, self.split_seed)
         self.manifest = m
 
-    def mean_depth_mm(self, split: str = "train") -> float:
+    def mean_depth_mm(self, split: str = "train") -> float | None:
         """Mean ground-truth depth (mm) of a split at the network's size, from the depth maps
-        alone: the constant predictor's value, without decoding the split's fringes."""
+        alone: the constant predictor's value, without decoding the split's fringes (None for
+        a split without valid pixels, e.g. a dataset labelled test only)."""
         if self.manifest is None:
             self._read_manifest()
         total, count = 0.0, 0
@@ -184,7 +185,7 @@ class FPPDataModule(L.LightningDataModule):
             depth = load_depth(self.manifest, sid, self.spec)
             total += float(np.nansum(depth, dtype=np.float64))
             count += int(np.isfinite(depth).sum())
-        return total / max(count, 1)
+        return total / count if count else None
 
     def _train_specs(self) -> list[SampleSpec]:
         """One sample spec per phase step of ``train_steps`` (checked like ``fringe_step``)."""
