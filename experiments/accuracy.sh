@@ -131,4 +131,12 @@ round13() {
   # held-out 0.290 ± 0.005 against 0.306 ± 0.050) but inside the preset's spread: not adopted yet.
   run s4-lr2e-3 optimizer.lr=2e-3
 }
-"${@:-round13}"
+round14() {
+  # UHRNet, whose branches keep full-resolution features, is the better regressor at every
+  # height (held-out set, accuracy.md); ODMV-Net's backbone runs at half resolution since
+  # round 3, adopted for time and never compared at equal time. Width 8 at stride 1 should
+  # cost about 1.2x width 16 at stride 2 (rounds 3 and 6). And rounds 12 and 13 together.
+  run s4-stride1-w8 stem_stride=1 widths.odmvnet=8
+  run s4-lr2e-3-fw16 optimizer.lr=2e-3 model.net.full_width=16
+}
+"${@:-round14}"
