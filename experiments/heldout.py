@@ -23,6 +23,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from split_predictions import best_checkpoint  # this folder's sibling script
+
 from odmv.io.manifest import MANIFEST
 from odmv.sim.writer import SimSettings, simulate
 
@@ -68,10 +70,7 @@ def main(argv: list[str]) -> int:
         print(f"no finished runs match {args.runs}", file=sys.stderr)
         return 2
     for run in runs:
-        metrics = json.loads((run / "metrics.json").read_text())
-        ckpt = Path(metrics["best_checkpoint"])
-        if not ckpt.is_file():  # a moved run folder: the checkpoint beside it
-            ckpt = run / "checkpoints" / ckpt.name
+        ckpt, metrics = best_checkpoint(run)
         source = Path(metrics["dataset"])
         data = heldout_dataset(source, source.parent / f"heldout-{source.name}-seed{SEED}")
         out = ROOT / "outputs" / "heldout" / run.resolve().parent.name / run.name

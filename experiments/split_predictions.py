@@ -25,16 +25,23 @@ import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.module import load_module, net_input
 
 
+def best_checkpoint(run: Path) -> tuple[Path, dict]:
+    """A finished run's best checkpoint (found beside it where the run folder was moved) and
+    its metrics.json."""
+    path = run / "metrics.json"
+    if not path.is_file():
+        raise SystemExit(f"error: {run}: no metrics.json (not a finished run)")
+    metrics = json.loads(path.read_text())
+    ckpt = Path(metrics["best_checkpoint"])
+    if not ckpt.is_file():
+        ckpt = run / "checkpoints" / ckpt.name  # the run folder was moved
+    return ckpt, metrics
+
+
 def run_data(run: Path, stage: str, views: list[str] | None = None):
     """A finished run's best checkpoint (eval mode) and its data module set up for ``stage``,
     with the run's data settings (``views``: other views than the run's)."""
-    metrics = run / "metrics.json"
-    if not metrics.is_file():
-        raise SystemExit(f"error: {run}: no metrics.json (not a finished run)")
-    ckpt = Path(json.loads(metrics.read_text())["best_checkpoint"])
-    if not ckpt.is_file():
-        ckpt = run / "checkpoints" / ckpt.name  # the run folder was moved
-    module = load_module(ckpt).eval()
+    module = load_module(best_checkpoint(run)[0]).eval()
     data = dict(module.hparams.data_cfg)
     views = list(module.hparams.views) if views is None else views
     data.update(progress=False, render=False, simulate=None, views=views)
