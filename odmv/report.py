@@ -35,6 +35,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 METRICS = ("mae_mm", "mse_mm2", "rmse_mm")
+FIGURE_SCENES = 3  # test scenes in Fig. 6 and 7: one per scene family
 
 
 @dataclass(frozen=True)
@@ -363,15 +364,21 @@ def pick_scenes(run: Run, count: int) -> list[str]:
 def comparison_figures(
     out: Path, cells: list[Cell], count: int, error_scale_mm: float
 ) -> list[str]:
-    """Fig. 6 and Fig. 7 for the Table II models (seed-0 run of each row, or the first)."""
-    shown = [
-        (c.row.label, min(c.runs, key=lambda r: r.metrics.get("seed", 0))) for c in cells if c.runs
-    ]
-    preds = [(label, _predictions(run)) for label, run in shown]
-    preds = [(label, p) for label, p in preds if p]
+    """Fig. 6 and Fig. 7 for the Table II models (of each row the lowest seed whose predictions
+    are on disk; the scenes are picked from an ODMV-Net run's per-scene file where there is one,
+    and every run of one test split picks the same ones)."""
+    preds = []
+    for c in cells:
+        runs = sorted(c.runs, key=lambda r: r.metrics.get("seed", 0))
+        p = next((p for p in map(_predictions, runs) if p), None)
+        if p:
+            preds.append((c.row.label, p))
     if not preds:
         return []
-    ref_run = next((r for c in cells if c.row.model == "odmvnet" for r in c.runs), shown[0][1])
+    listed = [r for c in cells for r in c.runs if (r.folder / SCENES_CSV).is_file()]
+    ref_run = next((r for r in listed if r.model == "odmvnet"), listed[0] if listed else None)
+    if ref_run is None:
+        return []
     written = []
     for sid in pick_scenes(ref_run, count):
         if not all(sid in p for _, p in preds):
@@ -434,7 +441,7 @@ def write_report(
     folders: list[Path],
     out: Path,
     protocol: str | None = None,
-    figures: int = 3,
+    figures: int = FIGURE_SCENES,
     error_scale_mm: float = 1.0,
 ) -> Path:
     """Read the runs below ``folders`` and write the report into ``out``; returns tables.md."""
@@ -482,7 +489,7 @@ def write_report(
         ]
     names = comparison_figures(out, tables["table2"], figures, error_scale_mm)
     if names:
-        lines += ["### Figures (Table II models, seed 0)", ""]
+        lines += ["### Figures (Table II models, of each row its lowest seed with predictions)", ""]
         lines += [f"![{n}]({n})" for n in names]
         lines.append("")
     if pending:

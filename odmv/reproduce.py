@@ -4,8 +4,12 @@ Renders the protocol's dataset, trains every row of the three sweeps (conf/sweep
 ablation, models) for each seed, runs the classical reference on the same test scenes, and
 writes the report (odmv.report). Every row is one ``python -m odmv.train`` run in its own folder
 under ``runs_dir``; a row whose ``metrics.json`` is on disk is not trained again, so an
-interrupted reproduction continues where it stopped. Rows that are the same configuration in two
-tables (ODMV-Net at S = 4 is the last row of all three) are trained once. Seed 0 of every row
+interrupted reproduction continues where it stopped. Each finished row's results (its
+``metrics.json``, config, per-scene errors and the predictions of the scenes the figures show,
+not its checkpoints) are also kept in ``records`` beside the report, which is committed with it:
+a fresh checkout continues the reproduction from them instead of training those rows again.
+Rows that are the same configuration in two tables (ODMV-Net at S = 4 is the last row of all
+three) are trained once. Seed 0 of every row
 runs before seed 1, so a partial reproduction already fills every table.
 """
 
@@ -22,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import hydra
+import numpy as np
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.override_parser.overrides_parser import OverridesParser
@@ -30,11 +35,14 @@ from omegaconf import DictConfig, OmegaConf
 import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.classical import classical_row
 from odmv.cli import run_app
-from odmv.report import write_report
+from odmv.module import PREDICTIONS, SCENES_CSV
+from odmv.report import FIGURE_SCENES, Run, pick_scenes, write_report
 from odmv.simulate import CONF_DIR
 
 CLASSICAL_DIR = "classical"
 RECORD = "reproduce.json"  # per row: the overrides that trained it
+KEPT = ("metrics.json", RECORD, SCENES_CSV, ".hydra/config.yaml")  # a row's record, beside the
+# predictions of the figures' scenes (a row's checkpoints and logs stay in its run folder)
 QUIET = ["trainer.enable_progress_bar=false", "data.progress=false"]  # a run's log is a file
 
 
@@ -48,18 +56,22 @@ class Job:
     seed: int
     folder: Path
     key: str  # hash of the resolved training config
+    record: Path  # where its results are kept beside the report
+
+    def result(self) -> Path | None:
+        """The folder holding the row's test result: its run folder, else its record."""
+        return next((f for f in (self.folder, self.record) if (f / "metrics.json").is_file()), None)
 
     def stale(self) -> bool:
         """Whether the row on disk was trained with another configuration than today's (its
         own saved config decides: code that only adds settings leaves finished rows valid)."""
-        saved = self.folder / ".hydra" / "config.yaml"
+        saved = (self.result() or self.folder) / ".hydra" / "config.yaml"
         return saved.is_file() and _run_key(OmegaConf.load(saved)) != self.key
 
     def interrupted(self) -> bool:
         """Whether the row stopped before its end with a checkpoint of today's configuration."""
-        done = (self.folder / "metrics.json").is_file()
         ckpt = (self.folder / "checkpoints" / "last.ckpt").is_file()
-        return ckpt and not done and (self.folder / ".hydra").is_dir() and not self.stale()
+        return ckpt and not self.result() and (self.folder / ".hydra").is_dir() and not self.stale()
 
 
 def _compose(overrides: list[str], hydra_cfg: bool = False) -> DictConfig:
@@ -114,10 +126,16 @@ def _without_nulls(d):
 
 
 def plan(
-    protocol: str, tables: list[str], seeds: list[int] | None, extra: list[str], runs_dir: Path
+    protocol: str,
+    tables: list[str],
+    seeds: list[int] | None,
+    extra: list[str],
+    runs_dir: Path,
+    records: Path | None = None,
 ) -> list[Job]:
     """Every distinct run of the reproduction, seed-major, each with its folder (named by the
-    row; a configuration that two tables share is one run)."""
+    row; a configuration that two tables share is one run) and its record in ``records``."""
+    records = runs_dir / "records" if records is None else records
     base = _compose([f"experiment={protocol}", *extra])
     seeds = list(base.seeds) if seeds is None else list(seeds)
     jobs: dict[str, Job] = {}
@@ -131,7 +149,8 @@ def plan(
                 if cfg.model.name == "odmvnet":
                     name += f"-{cfg.ablation}"
                 key = _run_key(cfg)
-                jobs.setdefault(key, Job(ov, seed, runs_dir / f"{name}-seed{seed}", key))
+                name += f"-seed{seed}"
+                jobs.setdefault(key, Job(ov, seed, runs_dir / name, key, records / name))
     return list(jobs.values())
 
 
@@ -166,16 +185,51 @@ def _train(job: Job, protocol: str, extra: list[str]) -> dict:
     return json.loads((job.folder / "metrics.json").read_text())
 
 
+def keep(folder: Path, record: Path) -> bool:
+    """Copy a finished run's results into ``record`` (replaced whole, never half-written);
+    of its test predictions only the scenes the report's figures show, so a record stays small
+    at any resolution. Returns whether anything changed (an unchanged record is not rewritten,
+    so a committed one stays as it is)."""
+    metrics = (folder / "metrics.json").read_text()
+    old = record / "metrics.json"
+    if old.is_file() and old.read_text() == metrics:
+        return False
+    tmp = record.with_name(f".{record.name}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    for name in KEPT:
+        if (folder / name).is_file():
+            (tmp / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(folder / name, tmp / name)
+    if (folder / PREDICTIONS).is_file():
+        shown = set(pick_scenes(Run(folder, json.loads(metrics)), FIGURE_SCENES))
+        with np.load(folder / PREDICTIONS) as z:
+            pick = np.isin(z["scene_id"], list(shown))
+            np.savez_compressed(tmp / PREDICTIONS, **{k: z[k][pick] for k in z.files})
+    if record.exists():
+        gone = record.with_name(f".{record.name}.old")
+        shutil.rmtree(gone, ignore_errors=True)
+        record.rename(gone)
+        tmp.rename(record)
+        shutil.rmtree(gone)
+    else:
+        record.parent.mkdir(parents=True, exist_ok=True)
+        tmp.rename(record)
+    return True
+
+
 def reproduce(cfg: DictConfig) -> Path:
     """Run (or continue) the reproduction; returns the report folder."""
     protocol, extra = cfg.protocol, list(cfg.overrides or [])
-    runs_dir, out = Path(cfg.runs_dir), Path(cfg.out)
+    runs_dir, out, records = Path(cfg.runs_dir), Path(cfg.out), Path(cfg.records)
     t0 = time.perf_counter()
-    jobs = plan(protocol, list(cfg.tables), cfg.seeds, extra, runs_dir)
+    jobs = plan(protocol, list(cfg.tables), cfg.seeds, extra, runs_dir, records)
     data_cfg = _compose([f"experiment={protocol}", *extra]).data
     dm = hydra.utils.instantiate(data_cfg, _convert_="all")
     dm.prepare_data()  # renders the protocol's dataset once; every row reads it
-    todo = [j for j in jobs if not (j.folder / "metrics.json").is_file()]
+    for job in jobs:  # rows finished before they were kept (or by hand) are kept now
+        if (job.folder / "metrics.json").is_file() and keep(job.folder, job.record):
+            print(f"kept {job.folder.name} in {job.record}", flush=True)
+    todo = [j for j in jobs if not j.result()]
     for job in jobs:
         if job.stale() and job not in todo:
             print(
@@ -191,16 +245,21 @@ def reproduce(cfg: DictConfig) -> Path:
     for k, job in enumerate(todo, 1):
         print(f"[{k}/{len(todo)}] {job.folder.name}: {' '.join(job.overrides)}", flush=True)
         m = _train(job, protocol, extra)
+        keep(job.folder, job.record)
         print(
             f"    {m['train_seconds'] / 60:.1f} min, test MAE {m['test/mae_mm']:.4f} mm "
             f"(shadowed {m['test/mae_mm_shadowed']:.4f} mm)",
             flush=True,
         )
-    classical = runs_dir / CLASSICAL_DIR
-    if cfg.classical and not (classical / "metrics.json").is_file():
-        print("classical reference (phase shifting, 4 projectors) on the test scenes", flush=True)
-        classical_row(dm.root, classical, resolution=dm.resolution)
-    folders = [j.folder for j in jobs] + ([classical] if cfg.classical else [])
+    folders = [j.result() for j in jobs]
+    if cfg.classical:
+        classical, kept = runs_dir / CLASSICAL_DIR, records / CLASSICAL_DIR
+        if not (classical / "metrics.json").is_file() and not (kept / "metrics.json").is_file():
+            print("classical reference (phase shifting, 4 projectors) on the test scenes")
+            classical_row(dm.root, classical, resolution=dm.resolution)
+        if (classical / "metrics.json").is_file():
+            keep(classical, kept)
+        folders.append(classical if (classical / "metrics.json").is_file() else kept)
     write_report(folders, out, protocol=protocol)
     minutes = (time.perf_counter() - t0) / 60
     print(f"report: {out / 'tables.md'} (this call: {minutes:.1f} min)")

@@ -4,6 +4,7 @@ a resumed reproduction that trains nothing."""
 
 import csv
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -194,6 +195,7 @@ def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, 
     # row whose saved configuration differs from today's is kept and named
     cut, changed = runs / "odmvnet-s1-multitask-seed0", runs / "odmvnet-s2-multitask-seed0"
     (cut / "metrics.json").unlink()
+    shutil.rmtree(out / "runs" / cut.name)  # a row that stopped has no record either
     saved = cut / ".hydra" / "config.yaml"
     before = saved.read_text()
     edited = changed / ".hydra" / "config.yaml"
@@ -207,6 +209,23 @@ def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, 
     assert (cut / "metrics.json").is_file()
     assert [p for p in metrics if p.parent != cut and p.stat().st_mtime_ns != stamps[p]] == []
 
+    # a fresh checkout has the report and its records, not the run folders: nothing is trained
+    # again, the tables keep every figure and the figures come from the kept predictions
+    kept = sorted((out / "runs").glob("*/metrics.json"))
+    assert [p.parent.name for p in kept] == sorted(p.parent.name for p in metrics)
+    with np.load(out / "runs" / cut.name / "test_predictions.npz") as z:
+        assert 0 < len(z["scene_id"]) <= 3  # only the scenes the figures show
+    for fig in out.glob("fig*.png"):
+        fig.unlink()
+    shutil.rmtree(runs)
+    capsys.readouterr()
+    reproduce(cfg)
+    assert "4 runs (4 done)" in capsys.readouterr().out and not runs.exists()
+    table = (out / "tables.md").read_text()
+    for path in kept:
+        assert f"{json.loads(path.read_text())['test/mae_mm']:.4f}" in table
+    assert list(out.glob("fig6_*.png")) and "missing" in table
+
 
 def _reproduce_cfg(overrides, runs, out):
     return OmegaConf.create(
@@ -218,5 +237,6 @@ def _reproduce_cfg(overrides, runs, out):
             "classical": True,
             "runs_dir": str(runs),
             "out": str(out),
+            "records": str(out / "runs"),
         }
     )
