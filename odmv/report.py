@@ -276,7 +276,8 @@ def _relative(path: Path) -> str:
 
 
 def _dataset_line(runs: list[Run]) -> str:
-    roots = sorted({r.metrics.get("dataset", "") for r in runs} - {""})
+    # a kept record names its dataset relative to the repository, a run folder absolutely
+    roots = sorted({str(Path(d).resolve()) for r in runs if (d := r.metrics.get("dataset"))})
     parts = []
     for root in roots:
         manifest = Path(root) / "manifest.json"
