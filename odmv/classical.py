@@ -90,6 +90,9 @@ def classical_row(
             if not k.startswith("pixels"):
                 row[k] = float(v[0])
         for subset, mask in masks.items():
+            # each subset's pixels, as a trained run's file counts them (the report picks the
+            # figures' scenes by them)
+            row[f"pixels{subset_suffix(subset)}"] = float(mask.sum())
             metrics[subset].update(pred, gt, reconstructed[subset])
             covered[subset][0] += float(reconstructed[subset].sum())
             covered[subset][1] += float(mask.sum())

@@ -79,6 +79,10 @@ def test_classical_row_is_accurate_where_it_reconstructs(tiny_dataset, tmp_path)
     assert m["test/coverage_unlit"] < m["test/coverage"]
     rows = list(csv.DictReader((tmp_path / "test_scenes.csv").open()))
     assert rows and {"scene", "family", "mae_mm", "coverage"} <= set(rows[0])
+    # each subset's pixels per scene, counted as a trained run counts them (the figures pick
+    # their scenes by them, so every row of a report shows the same ones)
+    total = {k: sum(float(r[k]) for r in rows) for k in ("pixels", "pixels_shadowed")}
+    assert total["pixels_shadowed"] / total["pixels"] == pytest.approx(m["test/share_shadowed"])
     with np.load(tmp_path / "test_predictions.npz") as z:
         assert z["pred_mm"].shape == z["depth_mm"].shape
         assert np.isnan(z["pred_mm"]).any() and np.isfinite(z["pred_mm"]).any()
@@ -213,8 +217,12 @@ def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, 
     # again, the tables keep every figure and the figures come from the kept predictions
     kept = sorted((out / "runs").glob("*/metrics.json"))
     assert [p.parent.name for p in kept] == sorted(p.parent.name for p in metrics)
-    with np.load(out / "runs" / cut.name / "test_predictions.npz") as z:
-        assert 0 < len(z["scene_id"]) <= 3  # only the scenes the figures show
+    shown = set()
+    for path in (out / "runs").glob("*/test_predictions.npz"):
+        with np.load(path) as z:
+            shown.add(frozenset(z["scene_id"]))
+    assert len(shown) == 1  # every row keeps the figures' scenes, the classical row too
+    assert 0 < len(next(iter(shown))) <= 3  # and only them
     for fig in out.glob("fig*.png"):
         fig.unlink()
     shutil.rmtree(runs)
