@@ -139,4 +139,12 @@ round14() {
   run s4-stride1-w8 stem_stride=1 widths.odmvnet=8
   run s4-lr2e-3-fw16 optimizer.lr=2e-3 model.net.full_width=16
 }
-"${@:-round14}"
+round15() {
+  # Round 14's stride 1 at width 8 lost 65 % (one seed): capacity before resolution. Round 14's
+  # second variant, then twice the rate for the two best single-view baselines: an improvement
+  # every net can take is measured on them before ODMV-Net adopts it (UHRNet ~30 min a run).
+  run s4-lr2e-3-fw16 optimizer.lr=2e-3 model.net.full_width=16
+  run unet-s1-lr2e-3 contender=unet_s1 optimizer.lr=2e-3
+  run uhrnet-s1-lr2e-3 contender=uhrnet_s1 optimizer.lr=2e-3
+}
+"${@:-round15}"
