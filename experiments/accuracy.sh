@@ -140,7 +140,7 @@ round14() {
   run s4-lr2e-3-fw16 optimizer.lr=2e-3 model.net.full_width=16
 }
 round15() {
-  # Round 14's stride 1 at width 8 lost 65 % (one seed): capacity before resolution. Round 14's
+  # Round 14: stride 1 at width 8 gave no gain (0.309 ± 0.092 mm, one seed failed to fit). Its
   # second variant, then twice the rate for the two best single-view baselines: an improvement
   # every net can take is measured on them before ODMV-Net adopts it (UHRNet ~30 min a run).
   run s4-lr2e-3-fw16 optimizer.lr=2e-3 model.net.full_width=16
