@@ -377,9 +377,9 @@ def comparison_figures(
     if not preds:
         return []
     listed = [r for c in cells for r in c.runs if (r.folder / SCENES_CSV).is_file()]
-    ref_run = next((r for r in listed if r.model == "odmvnet"), listed[0] if listed else None)
-    if ref_run is None:
+    if not listed:
         return []
+    ref_run = next((r for r in listed if r.model == "odmvnet"), listed[0])
     written = []
     for sid in pick_scenes(ref_run, count):
         if not all(sid in p for _, p in preds):

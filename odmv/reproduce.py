@@ -41,8 +41,8 @@ from odmv.simulate import CONF_DIR
 
 CLASSICAL_DIR = "classical"
 RECORD = "reproduce.json"  # per row: the overrides that trained it
-KEPT = ("metrics.json", RECORD, SCENES_CSV, ".hydra/config.yaml")  # a row's record, beside the
-# predictions of the figures' scenes (a row's checkpoints and logs stay in its run folder)
+# a row's record, with the predictions of the figures' scenes (checkpoints and logs stay behind)
+KEPT = ("metrics.json", RECORD, SCENES_CSV, ".hydra/config.yaml")
 QUIET = ["trainer.enable_progress_bar=false", "data.progress=false"]  # a run's log is a file
 
 
@@ -60,7 +60,7 @@ class Job:
 
     def result(self) -> Path | None:
         """The folder holding the row's test result: its run folder, else its record."""
-        return next((f for f in (self.folder, self.record) if (f / "metrics.json").is_file()), None)
+        return finished(self.folder, self.record)
 
     def stale(self) -> bool:
         """Whether the row on disk was trained with another configuration than today's (its
@@ -72,6 +72,11 @@ class Job:
         """Whether the row stopped before its end with a checkpoint of today's configuration."""
         ckpt = (self.folder / "checkpoints" / "last.ckpt").is_file()
         return ckpt and not self.result() and (self.folder / ".hydra").is_dir() and not self.stale()
+
+
+def finished(*folders: Path) -> Path | None:
+    """The first of ``folders`` that holds a test result (``metrics.json``), or None."""
+    return next((f for f in folders if (f / "metrics.json").is_file()), None)
 
 
 def _compose(overrides: list[str], hydra_cfg: bool = False) -> DictConfig:
@@ -188,8 +193,10 @@ def _train(job: Job, protocol: str, extra: list[str]) -> dict:
 def keep(folder: Path, record: Path) -> bool:
     """Copy a finished run's results into ``record`` (replaced whole, never half-written);
     of its test predictions only the scenes the report's figures show, so a record stays small
-    at any resolution. Returns whether anything changed (an unchanged record is not rewritten,
-    so a committed one stays as it is)."""
+    at any resolution. Returns whether anything changed: nothing for an unfinished run, and an
+    unchanged record is not rewritten, so a committed one stays as it is."""
+    if not finished(folder):
+        return False
     metrics = (folder / "metrics.json").read_text()
     old = record / "metrics.json"
     if old.is_file() and old.read_text() == metrics:
@@ -227,7 +234,7 @@ def reproduce(cfg: DictConfig) -> Path:
     dm = hydra.utils.instantiate(data_cfg, _convert_="all")
     dm.prepare_data()  # renders the protocol's dataset once; every row reads it
     for job in jobs:  # rows finished before they were kept (or by hand) are kept now
-        if (job.folder / "metrics.json").is_file() and keep(job.folder, job.record):
+        if keep(job.folder, job.record):
             print(f"kept {job.folder.name} in {job.record}", flush=True)
     todo = [j for j in jobs if not j.result()]
     for job in jobs:
@@ -254,12 +261,13 @@ def reproduce(cfg: DictConfig) -> Path:
     folders = [j.result() for j in jobs]
     if cfg.classical:
         classical, kept = runs_dir / CLASSICAL_DIR, records / CLASSICAL_DIR
-        if not (classical / "metrics.json").is_file() and not (kept / "metrics.json").is_file():
-            print("classical reference (phase shifting, 4 projectors) on the test scenes")
+        if not finished(classical, kept):
+            print(
+                "classical reference (phase shifting, 4 projectors) on the test scenes", flush=True
+            )
             classical_row(dm.root, classical, resolution=dm.resolution)
-        if (classical / "metrics.json").is_file():
-            keep(classical, kept)
-        folders.append(classical if (classical / "metrics.json").is_file() else kept)
+        keep(classical, kept)
+        folders.append(finished(classical, kept))
     write_report(folders, out, protocol=protocol)
     minutes = (time.perf_counter() - t0) / 60
     print(f"report: {out / 'tables.md'} (this call: {minutes:.1f} min)")
