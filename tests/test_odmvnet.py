@@ -212,3 +212,41 @@ def test_channels_last_gives_the_same_outputs_and_gradients():
     torch.testing.assert_close(results[1][1], grads, atol=1e-5 * grads.abs().max(), rtol=1e-3)
     with pytest.raises(ValueError, match="memory_format"):
         _tiny(memory_format="blocked")
+
+
+def test_neutral_gate_init_starts_every_gate_uniform_and_the_gates_still_learn():
+    net = _tiny(gate_init="neutral", stem_stride=2, norm="group").train()
+    seen = {"fusion": [], "gate": []}
+    for m in net.modules():
+        if isinstance(m, OcclusionAwareFusion):
+            m.register_forward_hook(lambda _m, a, out: seen["fusion"].append((a[0], out)))
+        if isinstance(m, AttentionGate3d):
+            m.register_forward_hook(lambda _m, a, out: seen["gate"].append((a[0], out)))
+    x = torch.rand(2, 4, 32, 32) * 2 - 1
+    out = net(x)
+    assert all(torch.equal(m, torch.full_like(m, 0.5)) for m in out["occlusion"])
+    # features x mask 0.5 x channel-view 0.5 x spatial 0.5, blended with equal weights
+    for feats, fused in seen["fusion"]:
+        torch.testing.assert_close(fused, 0.125 * feats.mean(2))
+    for feats, gated in seen["gate"]:
+        torch.testing.assert_close(gated, 0.5 * feats)
+    assert len(seen["fusion"]) == 3 and len(seen["gate"]) == 4
+    # one step on the depth outputs moves every gate's logit layer off zero
+    opt = torch.optim.SGD(net.parameters(), lr=0.1)
+    sum((d - torch.rand_like(d)).abs().mean() for d in [out["depth"], *out["aux"]]).backward()
+    opt.step()
+    logits = [
+        layer
+        for m in net.modules()
+        if isinstance(m, (AttentionGate3d, OcclusionDetector, OcclusionAwareFusion))
+        for layer in m.logit_layers()
+    ]
+    assert len(logits) == 4 + 4 + 2 * 3
+    still = [layer for layer in logits if not layer.weight.abs().sum() > 0]
+    assert not still, still
+    # PyTorch's initialisation (the default) gives masks that vary
+    with torch.no_grad():
+        masks = _tiny(stem_stride=2, norm="group")(x)["occlusion"]
+    assert all(m.std() > 0 for m in masks)
+    with pytest.raises(ValueError, match="gate_init"):
+        _tiny(gate_init="zeros")

@@ -165,6 +165,9 @@ class AttentionGate3d(nn.Module):
         self.wg = nn.Conv3d(g_ch, inter_ch, 1, bias=True)
         self.psi = nn.Sequential(nn.Conv3d(inter_ch, 1, 1), nn.Sigmoid())
 
+    def logit_layers(self) -> list[nn.Module]:
+        return [self.psi[0]]
+
     def forward(self, x, g):
         g = F.interpolate(g, size=x.shape[2:], mode="trilinear", align_corners=False)
         return x * self.psi(F.relu(self.wx(x) + self.wg(g), inplace=True))
@@ -203,6 +206,9 @@ class OcclusionDetector(nn.Module):
             nn.Conv3d(hidden, 1, 1),
         )
 
+    def logit_layers(self) -> list[nn.Module]:
+        return [self.net[-1]]
+
     def forward(self, x):
         return torch.sigmoid(self.net(x))
 
@@ -228,7 +234,15 @@ class OcclusionAwareFusion(nn.Module):
         )
         self.spatial = nn.Conv3d(2, 1, (3, 7, 7), padding=(1, 3, 3))
 
+    def logit_layers(self) -> list[nn.Module]:
+        return [self.mlp[-1], self.spatial]
+
     def forward(self, x, mask=None):
+        x, weights = self.attend(x, mask)
+        return (x * weights).sum(2)
+
+    def attend(self, x, mask=None):
+        """The attended features and the blend's weights over views, B x 1 x S x h x w."""
         if mask is not None:
             x = x * mask
         # channel-view attention: B x C x S weights
@@ -242,8 +256,30 @@ class OcclusionAwareFusion(nn.Module):
         x = x * torch.sigmoid(logits)
         if mask is not None:
             logits = logits + torch.log(mask.clamp_min(1e-4))
-        weights = torch.softmax(logits, dim=2)
-        return (x * weights).sum(2)
+        return x, torch.softmax(logits, dim=2)
+
+
+GATE_INITS = (None, "neutral")
+
+
+def set_gate_init(net: nn.Module, mode: str | None) -> nn.Module:
+    """``"neutral"`` (beyond the paper): every learned gate in ``net`` (attention gates, OCD
+    masks, the fusion's channel-view and spatial attention) starts uniform, its logit layer
+    zeroed: each gate passes 0.5 everywhere and the fusion starts as the mean over views. A
+    module that a Table I row adds then starts as the row before it up to a constant gain, and
+    departs from it only where the loss asks. None: PyTorch's initialisation (the paper is
+    silent on it)."""
+    if mode not in GATE_INITS:
+        raise ValueError(f"gate_init {mode!r} unknown; choose null or neutral")
+    if mode is None:
+        return net
+    gates = (AttentionGate3d, OcclusionDetector, OcclusionAwareFusion)
+    for module in net.modules():
+        if isinstance(module, gates):
+            for layer in module.logit_layers():
+                nn.init.zeros_(layer.weight)
+                nn.init.zeros_(layer.bias)
+    return net
 
 
 class RegressionHead(nn.Sequential):

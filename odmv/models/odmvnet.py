@@ -46,6 +46,7 @@ from odmv.models.blocks import (
     RegressionHead,
     ResBlock3d,
     conv_bn_act,
+    set_gate_init,
     set_memory_format,
     set_norm,
     set_view_padding,
@@ -140,7 +141,9 @@ class ODMVNet(nn.Module):
     (the view axis as a ring, :func:`odmv.models.blocks.set_view_padding`). ``memory_format``:
     "channels_last" (faster, the same values) or "contiguous"
     (:func:`odmv.models.blocks.set_memory_format`). ``full_width``: channels of the
-    full-resolution stage with ``stem_stride`` 2 (default None: base_width // 2)."""
+    full-resolution stage with ``stem_stride`` 2 (default None: base_width // 2).
+    ``gate_init``: None (PyTorch's initialisation) or "neutral", every gate starting uniform
+    (:func:`odmv.models.blocks.set_gate_init`)."""
 
     def __init__(
         self,
@@ -161,6 +164,7 @@ class ODMVNet(nn.Module):
         view_padding: str = "zeros",
         memory_format: str = "channels_last",
         full_width: int | None = None,
+        gate_init: str | None = None,
     ):
         super().__init__()
         if ablation not in ABLATION_ROWS:
@@ -230,6 +234,7 @@ class ODMVNet(nn.Module):
             else None
         )
         set_norm(self, norm)
+        set_gate_init(self, gate_init)
         set_view_padding(self, view_padding)
         set_memory_format(self, memory_format)
 
