@@ -20,6 +20,7 @@ import hydra
 import numpy as np
 import torch
 
+from odmv.evaluate import read_only
 from odmv.losses import resize_target
 from odmv.models.blocks import OcclusionAwareFusion
 from odmv.module import load_module, net_input
@@ -66,7 +67,7 @@ def main(paths: list[str]) -> int:
         return 2
     for path in paths:
         module = load_module(path).eval()
-        cfg = dict(module.hparams.data_cfg, progress=False, views=list(module.hparams.views))
+        cfg = read_only(module.hparams.data_cfg, views=list(module.hparams.views))
         dm = hydra.utils.instantiate(cfg, _convert_="all")
         dm.prepare_data()
         dm.setup()

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
+from odmv.evaluate import read_only
 from odmv.module import load_module, net_input
 
 
@@ -42,9 +43,8 @@ def run_data(run: Path, stage: str, views: list[str] | None = None):
     """A finished run's best checkpoint (eval mode) and its data module set up for ``stage``,
     with the run's data settings (``views``: other views than the run's)."""
     module = load_module(best_checkpoint(run)[0]).eval()
-    data = dict(module.hparams.data_cfg)
     views = list(module.hparams.views) if views is None else views
-    data.update(progress=False, render=False, simulate=None, views=views)
+    data = read_only(module.hparams.data_cfg, views=views)
     dm = hydra.utils.instantiate(data, _convert_="all")
     dm.prepare_data()
     dm.setup(stage)

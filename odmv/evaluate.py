@@ -41,6 +41,12 @@ def constant_predictor_errors(dm, value_mm: float) -> dict[str, float]:
     return {k: float(v) for k, v in metric.compute().items() if k != "pixels"}
 
 
+def read_only(data: dict, **changes) -> dict:
+    """A saved data config (a checkpoint's) that reads its dataset and never renders one, with
+    ``changes`` on top."""
+    return {**data, "progress": False, "render": False, "simulate": None, **changes}
+
+
 def constant_depth_mm(saved: dict, dm) -> float | None:
     """The constant predictor's depth (mm): the mean training depth of the dataset the net was
     trained on (the checkpoint's), so a test on another dataset is scored against the same
@@ -51,9 +57,7 @@ def constant_depth_mm(saved: dict, dm) -> float | None:
         and Path(root).resolve() != Path(dm.root).resolve()
         and (Path(root) / MANIFEST).is_file()
     ):
-        own = hydra.utils.instantiate(
-            {**saved, "progress": False, "render": False, "simulate": None}, _convert_="all"
-        )
+        own = hydra.utils.instantiate(read_only(saved), _convert_="all")
         const = own.mean_depth_mm("train")
         if const is not None:
             return const
@@ -157,8 +161,7 @@ def data_settings(saved: dict, cfg: DictConfig, overrides: list[str]) -> dict:
             f"{data['root']}: no dataset here (root=PATH names the dataset to test on; "
             "evaluation never renders one)"
         )
-    data.update(progress=False, render=False, simulate=None)
-    return data
+    return read_only(data)
 
 
 def evaluate(cfg: DictConfig, overrides: list[str] | None = None) -> dict:
