@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import time
 from dataclasses import asdict
 from pathlib import Path
 
@@ -62,6 +63,8 @@ class FPPModule(L.LightningModule):
         self.test_dir: Path | None = None
         self._scene_rows: list[dict] = []
         self._predictions: dict[str, list] = {}
+        # training time across resumes: what the checkpoint fitted from had spent, plus this fit
+        self._seconds_before, self._fit_started = 0.0, None
 
     def setup(self, stage: str) -> None:
         """Take units and views from the data module; they are saved with the checkpoint."""
@@ -225,9 +228,22 @@ class FPPModule(L.LightningModule):
         if "views" in out:
             tb.add_image("val/views_reconstructed", grid((out["views"][:n].detach() + 1) / 2), step)
 
+    def train_seconds(self) -> float:
+        """Seconds of fitting that led to these weights, over every resume."""
+        now = 0.0 if self._fit_started is None else time.perf_counter() - self._fit_started
+        return self._seconds_before + now
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        checkpoint["train_seconds"] = self.train_seconds()
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        self._seconds_before = float(checkpoint.get("train_seconds", 0.0))
+
     def on_fit_start(self):
         """Key settings with the metrics they led to, for TensorBoard's HPARAMS tab (which shows
-        the last logged value of each metric) and the loggers' hparams.yaml."""
+        the last logged value of each metric) and the loggers' hparams.yaml; starts the clock
+        of :meth:`train_seconds`."""
+        self._fit_started = time.perf_counter()
         params = {
             **(self.hparams.run_info or {}),
             "views": ",".join(self.hparams.views or []),

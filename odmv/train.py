@@ -8,7 +8,6 @@ with the run's overrides) into the run folder; multiruns also collect every job 
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import hydra
@@ -132,9 +131,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
     if ckpt is not None:
         check_fits(cfg.ckpt_path, ckpt, module.hparams.net_cfg, list(dm.views))
         check_weights(cfg.ckpt_path, ckpt["state_dict"], module.state_dict())
-    t0 = time.perf_counter()
     trainer.fit(module, datamodule=dm, ckpt_path=cfg.ckpt_path, weights_only=True)
-    train_seconds = time.perf_counter() - t0
+    train_seconds = module.train_seconds()  # a resumed run's included
     if trainer.is_global_zero:  # DDP: one process writes the run's files
         dm.save_split(out_dir / "split.json")
     metrics: dict = {}

@@ -114,6 +114,7 @@ def test_resume_continues_the_run_folder_logs_and_best_checkpoint(tiny_dataset, 
     assert "Total FLOPs" in first.stdout
     assert not (run / "train.log").exists()  # no empty log files
 
+    spent = torch.load(run / "checkpoints" / "last.ckpt", weights_only=True)["train_seconds"]
     again = _app("train", f"resume={run}", "trainer.max_epochs=3", f"hydra.run.dir={other}")
     assert again.returncode == 0, again.stderr[-3000:]
     assert f"continuing {run}" in again.stdout and not other.exists()
@@ -129,6 +130,7 @@ def test_resume_continues_the_run_folder_logs_and_best_checkpoint(tiny_dataset, 
     best_epoch = min(val, key=val.get)
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["best_checkpoint"] == str(run / "checkpoints" / f"best-{best_epoch:03d}.ckpt")
+    assert metrics["train_seconds"] > spent > 0  # the time before the resume counts too
 
 
 # ---------------------------------------------------------------- evaluation
