@@ -111,8 +111,9 @@ def _run_key(cfg: DictConfig) -> str:
     d = OmegaConf.to_container(cfg, resolve=True)
     for k in ("paths", "task_name", "test", "ckpt_path", "resume", "log_images", "seeds", "logger"):
         d.pop(k, None)
-    for per_net in ("widths", "alphas"):  # this net's entry is in model.net / loss; the others'
-        d.pop(per_net, None)  # are not this run's
+    # this net's entry is in model.net / loss / optimizer; the other nets' are not this run's
+    for per_net in ("widths", "alphas", "lrs"):
+        d.pop(per_net, None)
     for setting in QUIET:  # how a run reports is not what it is
         group, _, key = setting.partition("=")[0].rpartition(".")
         d[group].pop(key, None)

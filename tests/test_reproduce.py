@@ -138,7 +138,7 @@ def test_plan_trains_a_configuration_shared_by_tables_once(tmp_path):
     assert names.count("odmvnet-s4-multitask-seed0") == 1
 
 
-@pytest.mark.parametrize("setting", ["widths.odmvnet=24", "alphas.odmvnet=0.5"])
+@pytest.mark.parametrize("setting", ["widths.odmvnet=24", "alphas.odmvnet=0.5", "lrs.odmvnet=2e-3"])
 def test_a_row_is_keyed_by_its_own_net_only(tmp_path, setting):
     """Changing ODMV-Net's width or loss makes its rows stale, never the baselines' rows."""
     today = {j.folder.name: j.key for j in plan("mini", ["models"], [0], [], tmp_path)}
