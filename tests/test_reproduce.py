@@ -203,7 +203,9 @@ def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, 
     saved = cut / ".hydra" / "config.yaml"
     before = saved.read_text()
     edited = changed / ".hydra" / "config.yaml"
-    edited.write_text(edited.read_text().replace("lr: 0.001", "lr: 0.002"))
+    trained_with = OmegaConf.load(edited)
+    trained_with.lrs.odmvnet *= 2  # ODMV-Net's rate, which the row's optimizer.lr reads
+    OmegaConf.save(trained_with, edited)
     capsys.readouterr()
     reproduce(cfg)
     printed = capsys.readouterr().out
