@@ -3,6 +3,7 @@ import torch
 
 from odmv.models import ABLATION_ROWS, ODMVNet, count_parameters
 from odmv.models.blocks import (
+    GATES,
     ASPP3d,
     AttentionGate3d,
     OcclusionAwareFusion,
@@ -235,12 +236,7 @@ def test_neutral_gate_init_starts_every_gate_uniform_and_the_gates_still_learn()
     opt = torch.optim.SGD(net.parameters(), lr=0.1)
     sum((d - torch.rand_like(d)).abs().mean() for d in [out["depth"], *out["aux"]]).backward()
     opt.step()
-    logits = [
-        layer
-        for m in net.modules()
-        if isinstance(m, (AttentionGate3d, OcclusionDetector, OcclusionAwareFusion))
-        for layer in m.logit_layers()
-    ]
+    logits = [layer for m in net.modules() if isinstance(m, GATES) for layer in m.logit_layers()]
     assert len(logits) == 4 + 4 + 2 * 3
     still = [layer for layer in logits if not layer.weight.abs().sum() > 0]
     assert not still, still

@@ -260,6 +260,8 @@ class OcclusionAwareFusion(nn.Module):
 
 
 GATE_INITS = (None, "neutral")
+#: the modules whose outputs are learned gates (each names its logit layers)
+GATES = (AttentionGate3d, OcclusionDetector, OcclusionAwareFusion)
 
 
 def set_gate_init(net: nn.Module, mode: str | None) -> nn.Module:
@@ -273,9 +275,8 @@ def set_gate_init(net: nn.Module, mode: str | None) -> nn.Module:
         raise ValueError(f"gate_init {mode!r} unknown; choose null or neutral")
     if mode is None:
         return net
-    gates = (AttentionGate3d, OcclusionDetector, OcclusionAwareFusion)
     for module in net.modules():
-        if isinstance(module, gates):
+        if isinstance(module, GATES):
             for layer in module.logit_layers():
                 nn.init.zeros_(layer.weight)
                 nn.init.zeros_(layer.bias)
