@@ -4,17 +4,19 @@ Renders the protocol's dataset, trains every row of the three sweeps (conf/sweep
 ablation, models) for each seed, runs the classical reference on the same test scenes, and
 writes the report (odmv.report). Every row is one ``python -m odmv.train`` run in its own folder
 under ``runs_dir``; a row whose ``metrics.json`` is on disk is not trained again, so an
-interrupted reproduction continues where it stopped. Each finished row's results (its
-``metrics.json``, config, per-scene errors and the predictions of the scenes the figures show,
-not its checkpoints) are also kept in ``records`` beside the report, which is committed with it:
-a fresh checkout continues the reproduction from them instead of training those rows again.
-Rows that are the same configuration in two tables (ODMV-Net at S = 4 is the last row of all
-three) are trained once. Seed 0 of every row
-runs before seed 1, so a partial reproduction already fills every table.
+interrupted reproduction continues where it stopped; ``retrain`` (row-name patterns) trains
+finished rows again after a preset changed, each kept until its new run ends. Each finished
+row's results (its ``metrics.json``, config, per-scene errors and the predictions of the scenes
+the figures show, not its checkpoints) are also kept in ``records`` beside the report, which is
+committed with it: a fresh checkout continues the reproduction from them instead of training
+those rows again. Rows that are the same configuration in two tables (ODMV-Net at S = 4 is the
+last row of all three) are trained once. Seed 0 of every row runs before seed 1, so a partial
+reproduction already fills every table.
 """
 
 from __future__ import annotations
 
+import fnmatch
 import hashlib
 import itertools
 import json
@@ -40,7 +42,7 @@ from odmv.report import FIGURE_SCENES, Run, pick_scenes, write_report
 from odmv.simulate import CONF_DIR
 
 CLASSICAL_DIR = "classical"
-RECORD = "reproduce.json"  # per row: the overrides that trained it
+RECORD = "reproduce.json"  # per row: the overrides that trained it and their key
 # a row's record, with the predictions of the figures' scenes (checkpoints and logs stay behind)
 KEPT = ("metrics.json", RECORD, SCENES_CSV, ".hydra/config.yaml")
 QUIET = ["trainer.enable_progress_bar=false", "data.progress=false"]  # a run's log is a file
@@ -65,13 +67,29 @@ class Job:
     def stale(self) -> bool:
         """Whether the row on disk was trained with another configuration than today's (its
         own saved config decides: code that only adds settings leaves finished rows valid)."""
-        saved = (self.result() or self.folder) / ".hydra" / "config.yaml"
-        return saved.is_file() and _run_key(OmegaConf.load(saved)) != self.key
+        key = trained_key(self.result() or self.folder)
+        return key is not None and key != self.key
+
+    def current(self) -> bool:
+        """Whether the row has a result known to be of today's configuration."""
+        done = self.result()
+        return done is not None and trained_key(done) == self.key
 
     def interrupted(self) -> bool:
-        """Whether the row stopped before its end with a checkpoint of today's configuration."""
+        """Whether the row's folder stopped before its end with a checkpoint of today's
+        configuration (a row being trained again still has its old result in its record)."""
         ckpt = (self.folder / "checkpoints" / "last.ckpt").is_file()
-        return ckpt and not self.result() and (self.folder / ".hydra").is_dir() and not self.stale()
+        return ckpt and not finished(self.folder) and trained_key(self.folder) == self.key
+
+
+def trained_key(folder: Path) -> str | None:
+    """The key of the configuration that trained the row in ``folder``: from its saved config,
+    else from its record; None for a record kept before either was written."""
+    saved = folder / ".hydra" / "config.yaml"
+    if saved.is_file():
+        return _run_key(OmegaConf.load(saved))
+    record = folder / RECORD
+    return json.loads(record.read_text()).get("key") if record.is_file() else None
 
 
 def finished(*folders: Path) -> Path | None:
@@ -112,7 +130,8 @@ def _run_key(cfg: DictConfig) -> str:
     for k in ("paths", "task_name", "test", "ckpt_path", "resume", "log_images", "seeds", "logger"):
         d.pop(k, None)
     # this net's entry is in model.net / loss / optimizer; the other nets' are not this run's
-    for per_net in ("widths", "alphas", "lrs"):
+    # (full_width reaches ODMV-Net's model.net only, so a baseline's row ignores it too)
+    for per_net in ("widths", "alphas", "lrs", "full_width"):
         d.pop(per_net, None)
     for setting in QUIET:  # how a run reports is not what it is
         group, _, key = setting.partition("=")[0].rpartition(".")
@@ -186,7 +205,7 @@ def _train(job: Job, protocol: str, extra: list[str]) -> dict:
     if proc.returncode != 0 or not (job.folder / "metrics.json").is_file():
         where = job.folder / "train.out" if job.folder.is_dir() else tmp
         raise ReproduceError(f"{where}: training failed (exit {proc.returncode})")
-    record = {"overrides": [f"experiment={protocol}", *extra, *job.overrides]}
+    record = {"overrides": [f"experiment={protocol}", *extra, *job.overrides], "key": job.key}
     (job.folder / RECORD).write_text(json.dumps(record, indent=1) + "\n")
     return json.loads((job.folder / "metrics.json").read_text())
 
@@ -195,12 +214,13 @@ def keep(folder: Path, record: Path) -> bool:
     """Copy a finished run's results into ``record`` (replaced whole, never half-written);
     of its test predictions only the scenes the report's figures show, so a record stays small
     at any resolution. Returns whether anything changed: nothing for an unfinished run, and an
-    unchanged record is not rewritten, so a committed one stays as it is."""
+    unchanged record (the same figures of the same configuration) is not rewritten, so a
+    committed one stays as it is."""
     if not finished(folder):
         return False
     metrics = (folder / "metrics.json").read_text()
     old = record / "metrics.json"
-    if old.is_file() and old.read_text() == metrics:
+    if old.is_file() and old.read_text() == metrics and trained_key(record) == trained_key(folder):
         return False
     tmp = record.with_name(f".{record.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -237,16 +257,20 @@ def reproduce(cfg: DictConfig) -> Path:
     for job in jobs:  # rows finished before they were kept (or by hand) are kept now
         if keep(job.folder, job.record):
             print(f"kept {job.folder.name} in {job.record}", flush=True)
-    todo = [j for j in jobs if not j.result()]
+    retrain = list(cfg.retrain)
+    again = [j for j in jobs if any(fnmatch.fnmatch(j.folder.name, p) for p in retrain)]
+    todo = [j for j in jobs if not j.result() or (j in again and not j.current())]
     for job in jobs:
         if job.stale() and job not in todo:
             print(
                 f"note: {job.folder.name} was trained with another configuration than today's; "
-                "it is kept (delete its folder to train it again)",
+                f"it is kept (retrain=[{job.folder.name}] trains it again)",
                 flush=True,
             )
     print(
-        f"protocol {protocol}: {len(jobs)} runs ({len(jobs) - len(todo)} done), "
+        f"protocol {protocol}: {len(jobs)} runs ({len(jobs) - len(todo)} done"
+        + (f", {len([j for j in todo if j.result()])} to train again" if again else "")
+        + "), "
         f"dataset {dm.root}, runs in {runs_dir}",
         flush=True,
     )

@@ -17,7 +17,7 @@ from odmv.classical import classical_row
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import footprint_from_depth, subset_masks
 from odmv.module import FPPModule
-from odmv.reproduce import plan, reproduce, sweep_overrides
+from odmv.reproduce import RECORD, plan, reproduce, sweep_overrides, trained_key
 from odmv.rig import VIEW_NAMES
 from odmv.simulate import CONF_DIR
 
@@ -138,7 +138,9 @@ def test_plan_trains_a_configuration_shared_by_tables_once(tmp_path):
     assert names.count("odmvnet-s4-multitask-seed0") == 1
 
 
-@pytest.mark.parametrize("setting", ["widths.odmvnet=24", "alphas.odmvnet=0.5", "lrs.odmvnet=2e-3"])
+@pytest.mark.parametrize(
+    "setting", ["widths.odmvnet=24", "alphas.odmvnet=0.5", "lrs.odmvnet=3e-3", "full_width=8"]
+)
 def test_a_row_is_keyed_by_its_own_net_only(tmp_path, setting):
     """Changing ODMV-Net's width or loss makes its rows stale, never the baselines' rows."""
     today = {j.folder.name: j.key for j in plan("mini", ["models"], [0], [], tmp_path)}
@@ -152,14 +154,28 @@ def test_a_setting_added_as_null_keeps_finished_rows_valid(tmp_path):
     giving it a value is a change."""
     job = plan("mini", ["views"], [0], [], tmp_path)[0]
     saved = _compose(["experiment=mini", *job.overrides])
-    assert saved.model.net.full_width is None
+    assert saved.model.net.gate_init is None
     OmegaConf.set_struct(saved, False)
-    del saved.model.net["full_width"]  # the config as written before the setting existed
+    del saved.model.net["gate_init"]  # the config as written before the setting existed
     (job.folder / ".hydra").mkdir(parents=True)
     OmegaConf.save(saved, job.folder / ".hydra" / "config.yaml")
-    assert not job.stale()
-    changed = plan("mini", ["views"], [0], ["model.net.full_width=16"], tmp_path)[0]
-    assert changed.folder == job.folder and changed.stale()
+    (job.folder / "metrics.json").write_text("{}")  # a finished row
+    assert not job.stale() and job.current()
+    changed = plan("mini", ["views"], [0], ["model.net.gate_init=neutral"], tmp_path)[0]
+    assert changed.folder == job.folder and changed.stale() and not changed.current()
+
+
+def test_a_record_without_its_config_is_judged_by_its_recorded_key(tmp_path):
+    """A record kept without .hydra/config.yaml: its reproduce.json key decides; without a key
+    (records kept before keys were written) nothing can be told, and the row counts as done."""
+    job = plan("mini", ["views"], [0], [], tmp_path)[0]
+    job.record.mkdir(parents=True)
+    (job.record / "metrics.json").write_text("{}")
+    assert job.result() == job.record and not job.stale() and not job.current()
+    (job.record / RECORD).write_text(json.dumps({"overrides": [], "key": job.key}))
+    assert job.current() and not job.stale()
+    (job.record / RECORD).write_text(json.dumps({"overrides": [], "key": "0" * 8}))
+    assert job.stale() and not job.current()
 
 
 @pytest.mark.slow
@@ -203,6 +219,7 @@ def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, 
     saved = cut / ".hydra" / "config.yaml"
     before = saved.read_text()
     edited = changed / ".hydra" / "config.yaml"
+    today = trained_key(changed)
     trained_with = OmegaConf.load(edited)
     trained_with.lrs.odmvnet *= 2  # ODMV-Net's rate, which the row's optimizer.lr reads
     OmegaConf.save(trained_with, edited)
@@ -214,6 +231,21 @@ def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, 
     assert "resume=" in (cut / "train.out").read_text() and saved.read_text() == before
     assert (cut / "metrics.json").is_file()
     assert [p for p in metrics if p.parent != cut and p.stat().st_mtime_ns != stamps[p]] == []
+
+    # retrain trains the changed row again, its record replaced by the new run; then it is
+    # today's configuration and a second call trains nothing
+    again = OmegaConf.merge(cfg, {"retrain": ["odmvnet-s2-*"]})
+    assert trained_key(changed) != today
+    capsys.readouterr()
+    reproduce(again)
+    printed = capsys.readouterr().out
+    assert "(3 done, 1 to train again)" in printed and f"[1/1] {changed.name}:" in printed
+    assert trained_key(changed) == trained_key(out / "runs" / changed.name) == today
+    assert json.loads((changed / RECORD).read_text())["key"] == today
+    stamps = {p: p.stat().st_mtime_ns for p in metrics}
+    reproduce(again)
+    assert "(4 done, 0 to train again)" in capsys.readouterr().out
+    assert {p: p.stat().st_mtime_ns for p in metrics} == stamps
 
     # a fresh checkout has the report and its records, not the run folders: nothing is trained
     # again, the tables keep every figure and the figures come from the kept predictions
@@ -245,6 +277,7 @@ def _reproduce_cfg(overrides, runs, out):
             "seeds": [0],
             "overrides": overrides,
             "classical": True,
+            "retrain": [],
             "runs_dir": str(runs),
             "out": str(out),
             "records": str(out / "runs"),
