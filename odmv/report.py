@@ -239,9 +239,9 @@ def _verdict(diff: float, se: float) -> str:
     return f"within seed noise ({'holds' if diff > 0 else 'fails'} in the mean)"
 
 
-def _lower(better: Cell, worse: Cell, key: str = "test/mae_mm") -> tuple[float, float]:
-    """How much lower ``better``'s mean is than ``worse``'s, and its standard error."""
-    a, b = better.values(key), worse.values(key)
+def _lower(better: Cell, worse: Cell) -> tuple[float, float]:
+    """How much lower ``better``'s mean MAE is than ``worse``'s, and its standard error."""
+    a, b = better.values("test/mae_mm"), worse.values("test/mae_mm")
     a, b = a[np.isfinite(a)], b[np.isfinite(b)]
     if not len(a) or not len(b):
         return np.nan, np.nan
