@@ -14,12 +14,14 @@ a lit and of an unlit view and the weights' AUC as a lit/unlit detector.
 
 from __future__ import annotations
 
+import argparse
 import sys
 
 import hydra
 import numpy as np
 import torch
 
+from odmv.checkpoint import CheckpointError
 from odmv.evaluate import read_only
 from odmv.losses import resize_target
 from odmv.models.blocks import OcclusionAwareFusion
@@ -61,12 +63,16 @@ def blend_summary(pairs: list) -> str:
     return line
 
 
-def main(paths: list[str]) -> int:
-    if not paths:
-        print(__doc__, file=sys.stderr)
-        return 2
-    for path in paths:
-        module = load_module(path).eval()
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("checkpoints", nargs="+", metavar="CKPT")
+    for path in parser.parse_args(argv).checkpoints:
+        try:
+            module = load_module(path).eval()
+        except CheckpointError as e:
+            raise SystemExit(f"error: {e}") from None
         cfg = read_only(module.hparams.data_cfg, views=list(module.hparams.views))
         dm = hydra.utils.instantiate(cfg, _convert_="all")
         dm.prepare_data()
