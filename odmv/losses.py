@@ -18,6 +18,10 @@ import torch
 import torch.nn.functional as F
 from kornia.metrics import ssim
 
+# the weights of the terms beyond the main depth loss, and the net output each term needs: a
+# weight is read only for a net with that output (each net lists its terms in LOSS_TERMS)
+OPTIONAL_TERMS = {"aux": "aux", "view": "views", "occlusion": "occlusion", "phase": "phase"}
+
 
 @dataclass
 class LossWeights:

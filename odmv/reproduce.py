@@ -37,6 +37,7 @@ from omegaconf import DictConfig, OmegaConf
 import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.classical import classical_row
 from odmv.cli import run_app
+from odmv.losses import OPTIONAL_TERMS
 from odmv.module import PREDICTIONS, SCENES_CSV
 from odmv.report import FIGURE_SCENES, Run, pick_scenes, write_report
 from odmv.simulate import CONF_DIR
@@ -133,6 +134,10 @@ def _run_key(cfg: DictConfig) -> str:
     # (full_width reaches ODMV-Net's model.net only, so a baseline's row ignores it too)
     for per_net in ("widths", "alphas", "lrs", "full_width"):
         d.pop(per_net, None)
+    net = hydra.utils.get_class(d["model"]["net"]["_target_"])
+    for term in OPTIONAL_TERMS:  # a loss weight the net has no output for is never read
+        if term not in net.LOSS_TERMS:
+            d["loss"].pop(term, None)
     for setting in QUIET:  # how a run reports is not what it is
         group, _, key = setting.partition("=")[0].rpartition(".")
         d[group].pop(key, None)

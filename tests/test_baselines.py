@@ -2,7 +2,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from odmv.losses import LossWeights, composite_loss
+from odmv.losses import OPTIONAL_TERMS, LossWeights, composite_loss
 from odmv.models import HNet, MTLNet, UHRNet, UNet, count_parameters
 from odmv.simulate import CONF_DIR
 from odmv.train import train
@@ -26,6 +26,7 @@ def test_shapes_and_every_parameter_gets_a_gradient(cls, views):
     x = torch.rand(2, views, 32, 48) * 2 - 1
     out = net(x)
     assert out["depth"].shape == (2, 1, 32, 48)
+    assert {t for t, key in OPTIONAL_TERMS.items() if key in out} == set(cls.LOSS_TERMS)
     batch = {
         "depth": torch.rand(2, 1, 32, 48),
         "fringes": x,

@@ -1,6 +1,7 @@
 import pytest
 import torch
 
+from odmv.losses import OPTIONAL_TERMS
 from odmv.models import ABLATION_ROWS, ODMVNet, count_parameters
 from odmv.models.blocks import (
     GATES,
@@ -36,6 +37,7 @@ def test_output_shapes_and_ranges(views, hw):
     assert [m.shape for m in out["occlusion"]] == [(2, 1, views, a, b) for a, b in scales]
     for m in out["occlusion"]:
         assert 0 < m.min() and m.max() < 1
+    assert {t for t, key in OPTIONAL_TERMS.items() if key in out} == set(ODMVNet.LOSS_TERMS)
 
 
 def test_every_parameter_gets_a_gradient():

@@ -139,10 +139,19 @@ def test_plan_trains_a_configuration_shared_by_tables_once(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "setting", ["widths.odmvnet=24", "alphas.odmvnet=0.5", "lrs.odmvnet=3e-3", "full_width=8"]
+    "setting",
+    [
+        "widths.odmvnet=24",
+        "alphas.odmvnet=0.5",
+        "lrs.odmvnet=3e-3",
+        "full_width=8",
+        "loss.occlusion=0.05",  # and a loss weight only ODMV-Net's outputs read
+        "loss.view=0.5",
+    ],
 )
 def test_a_row_is_keyed_by_its_own_net_only(tmp_path, setting):
-    """Changing ODMV-Net's width or loss makes its rows stale, never the baselines' rows."""
+    """Changing ODMV-Net's width, rate, loss or a loss term only it has makes its rows stale,
+    never the baselines' rows."""
     today = {j.folder.name: j.key for j in plan("mini", ["models"], [0], [], tmp_path)}
     changed_net = plan("mini", ["models"], [0], [setting], tmp_path)
     changed = sorted(j.folder.name for j in changed_net if j.key != today[j.folder.name])

@@ -98,6 +98,8 @@ def _widths(base: int) -> list[int]:
 
 
 class UNet(nn.Module):
+    LOSS_TERMS = ()  # odmv.losses.OPTIONAL_TERMS its outputs have
+
     def __init__(self, in_channels: int = 1, base_width: int = 32, dropout: float = 0.5):
         super().__init__()
         widths = _widths(base_width)
@@ -113,6 +115,8 @@ class UNet(nn.Module):
 
 
 class HNet(nn.Module):
+    LOSS_TERMS = ("aux",)  # side outputs, deeply supervised
+
     def __init__(self, in_channels: int = 1, base_width: int = 32, dropout: float = 0.5):
         super().__init__()
         widths = _widths(base_width)
@@ -207,6 +211,8 @@ class _HighResFusion(nn.Module):
 
 
 class UHRNet(nn.Module):
+    LOSS_TERMS = ()
+
     def __init__(
         self, in_channels: int = 1, base_width: int = 64, dropout: float = 0.3, norm: str = "batch"
     ):
@@ -246,6 +252,8 @@ class UHRNet(nn.Module):
 
 
 class MTLNet(nn.Module):
+    LOSS_TERMS = ("phase",)
+
     def __init__(
         self,
         in_channels: int = 1,

@@ -145,6 +145,8 @@ class ODMVNet(nn.Module):
     ``gate_init``: None (PyTorch's initialisation) or "neutral", every gate starting uniform
     (:func:`odmv.models.blocks.set_gate_init`)."""
 
+    LOSS_TERMS = ("aux", "view", "occlusion")  # the full model; a Table I row may lack some
+
     def __init__(
         self,
         base_width: int = 46,
