@@ -161,7 +161,9 @@ round17() {
   # where the row before it stands), and the OCD masks supervised with the lit masks (BCE at
   # 0.02, near the depth L1's size), which gives the fusion's log-mask something to reject.
   # On top of round 15's levers (lr 2e-3, full_width 16; confirmed on the held-out set: 0.229 ±
-  # 0.020 against the preset's 0.306 ± 0.050 mm), which the mini preset takes next.
+  # 0.020 against the preset's 0.306 ± 0.050 mm), which the mini preset takes next. Neither
+  # helps: neutral 0.208 ± 0.002, supervision 0.217 ± 0.041 (its masks detect occlusion, AUC
+  # 0.83-0.99, but the fusion uses them in one seed of two).
   local best=(optimizer.lr=2e-3 model.net.full_width=16)
   run s4-lr2e-3-fw16-neutral "${best[@]}" model.net.gate_init=neutral
   run s4-lr2e-3-fw16-occ0.02 "${best[@]}" loss.occlusion=0.02
@@ -175,8 +177,9 @@ round18() {
 }
 round19() {
   # Round 17: supervising the OCD masks with the lit masks (BCE at 0.02) makes them detect
-  # illumination (AUC 0.95-0.99 against 0.52-0.73) and the fusion weigh lit views 3x unlit.
-  # The demo (ODMV-Net width 12, lr 2e-3) with it: the term costs no measurable time.
+  # illumination (AUC 0.83-0.99 against 0.52-0.73); in one seed of two the fusion then weighs
+  # lit views 3x unlit and the run is the best S = 4 run. The demo (ODMV-Net width 12, lr 2e-3)
+  # with it: the term costs no measurable time.
   EXP=quickstart run demo-w12-lr2e-3-occ0.02 optimizer.lr=2e-3 loss.occlusion=0.02
 }
 "${@:-round19}"
