@@ -67,7 +67,8 @@ class Job:
 
     def stale(self) -> bool:
         """Whether the row on disk was trained with another configuration than today's (its
-        own saved config decides: code that only adds settings leaves finished rows valid)."""
+        own saved config decides, else its recorded key: code that only adds settings leaves
+        finished rows valid)."""
         key = trained_key(self.result() or self.folder)
         return key is not None and key != self.key
 
