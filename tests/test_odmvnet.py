@@ -176,6 +176,28 @@ def test_fusion_gives_a_view_the_occlusion_detector_rejects_almost_no_weight():
         assert not torch.allclose(fusion(x_other, None), without, atol=1e-2)
 
 
+def test_a_bounded_fusion_keeps_each_views_weight_within_its_bound_of_the_masks_ratio():
+    torch.manual_seed(0)
+    x = torch.randn(2, 8, 4, 16, 16)
+    mask = torch.rand(2, 1, 4, 16, 16) * 0.9 + 0.05
+    ratio = lambda w: (w[:, :, :, None] / w[:, :, None, :]).log()  # noqa: E731
+    spread = {}
+    for bound in (None, 0.5):
+        fusion = OcclusionAwareFusion(8, bound=bound).eval()
+        with torch.no_grad():
+            fusion.spatial.weight.mul_(100)  # attention logits far beyond the bound
+            weights = fusion.attend(x, mask)[1]
+        torch.testing.assert_close(weights.sum(2), torch.ones(2, 1, 16, 16))
+        # log(w_i / w_j) - log(m_i / m_j): what the attention adds between two views
+        spread[bound] = (ratio(weights) - ratio(mask)).abs().max().item()
+    assert spread[0.5] <= 1.0 + 1e-5  # exp(2 * bound) at most
+    assert spread[None] > 10  # unbounded, the attention overrides the mask
+    net = _tiny(fusion_bound=0.5)
+    assert [f.bound for f in net.fusion] == [0.5] * 3
+    with pytest.raises(ValueError, match="fusion_bound"):
+        _tiny(fusion_bound=0.0)
+
+
 def test_circular_view_padding_makes_the_net_equivariant_to_rotating_the_views():
     x = torch.rand(1, 4, 32, 32) * 2 - 1
     rolled = x.roll(1, dims=1)  # right, down, left, up -> up, right, down, left

@@ -224,10 +224,18 @@ class OcclusionAwareFusion(nn.Module):
     attention (the spatial attention's kernel spans neighbouring views, so an unmasked
     occluded view would still steer its neighbours' weights) and adds its log to the logits
     (so the blend gives that view almost no weight).
+
+    ``bound`` (beyond the paper; None: the paper's unbounded logits) limits what the attention
+    adds to the blend's logits to ±bound (a scaled tanh), so the attention can change one
+    view's weight against another's by at most exp(2 * bound) and the mask, not the attention,
+    decides where they disagree: unbounded, learned logits can cancel the log-mask.
     """
 
-    def __init__(self, ch: int, reduction: int = 8):
+    def __init__(self, ch: int, reduction: int = 8, bound: float | None = None):
         super().__init__()
+        if bound is not None and not bound > 0:
+            raise ValueError(f"fusion_bound {bound}: a positive logit bound, or null")
+        self.bound = bound
         hidden = max(4, ch // reduction)
         self.mlp = nn.Sequential(
             nn.Linear(ch, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, ch)
@@ -254,6 +262,8 @@ class OcclusionAwareFusion(nn.Module):
         pooled = torch.cat([x.mean(1, keepdim=True), x.amax(1, keepdim=True)], 1)
         logits = self.spatial(pooled)
         x = x * torch.sigmoid(logits)
+        if self.bound is not None:
+            logits = self.bound * torch.tanh(logits / self.bound)
         if mask is not None:
             logits = logits + torch.log(mask.clamp_min(1e-4))
         return x, torch.softmax(logits, dim=2)

@@ -24,7 +24,8 @@ Choices where the paper (Sec. II.A, Figs. 1-2) is silent, as implemented here:
 - OCD: one lightweight depthwise-separable head per skip scale predicts a soft per-view mask
   (B x 1 x S x h x w) from the encoder features and multiplies that skip before it is gated.
 - OAF at Main (1/1), Aux1 (1/2) and Aux2 (1/4): channel-view and spatial attention, then a
-  softmax-over-views blend in which the OCD mask lowers the weight of views it finds occluded;
+  softmax-over-views blend in which the OCD mask lowers the weight of views it finds occluded
+  (``fusion_bound`` limits the attention's share of that blend, beyond the paper);
   scale-specific 2D regression heads follow. Without ``ocd_oaf``: plain mean over views.
 - SSVR: a 3D conv head on the final decoder stage gives one map per view through a Tanh.
 - Deep supervision (Main/Aux1/Aux2) is part of every ablation row: Table I varies modules, not
@@ -143,7 +144,9 @@ class ODMVNet(nn.Module):
     (:func:`odmv.models.blocks.set_memory_format`). ``full_width``: channels of the
     full-resolution stage with ``stem_stride`` 2 (default None: base_width // 2).
     ``gate_init``: None (PyTorch's initialisation) or "neutral", every gate starting uniform
-    (:func:`odmv.models.blocks.set_gate_init`)."""
+    (:func:`odmv.models.blocks.set_gate_init`). ``fusion_bound``: None (the paper) or the
+    bound on the attention's share of the fusion's blend logits
+    (:class:`odmv.models.blocks.OcclusionAwareFusion`)."""
 
     LOSS_TERMS = ("aux", "view", "occlusion")  # the full model; a Table I row may lack some
 
@@ -167,6 +170,7 @@ class ODMVNet(nn.Module):
         memory_format: str = "channels_last",
         full_width: int | None = None,
         gate_init: str | None = None,
+        fusion_bound: float | None = None,
     ):
         super().__init__()
         if ablation not in ABLATION_ROWS:
@@ -226,7 +230,11 @@ class ODMVNet(nn.Module):
             self.decoder_full = conv_bn_act(2 * fw, fw)
         # output heads Main, Aux1, Aux2: the channels of the stages they read
         head_ch = [w[0], w[1], w[2]] if stem_stride == 1 else [fw, w[0], w[1]]
-        self.fusion = nn.ModuleList(OcclusionAwareFusion(c) for c in head_ch) if ocd_oaf else None
+        self.fusion = (
+            nn.ModuleList(OcclusionAwareFusion(c, bound=fusion_bound) for c in head_ch)
+            if ocd_oaf
+            else None
+        )
         self.heads = nn.ModuleList(RegressionHead(c) for c in head_ch)
         self.ssvr = (
             nn.Sequential(
