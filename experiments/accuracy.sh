@@ -171,7 +171,8 @@ round17() {
 round18() {
   # ODMV-Net trains at 2e-3 in experiment=mini (round 15); of the baselines UNet stalled at it and
   # UHRNet gained nothing held-out. The two not yet measured at it, so every baseline is offered
-  # the rate ODMV-Net got.
+  # the rate ODMV-Net got. Neither keeps it: MTLNet worse in both seeds (0.455 ± 0.172 against
+  # 0.270 ± 0.003), hNet one seed better and one much worse (0.354 ± 0.131 against 0.305 ± 0.023).
   run hnet-s1-lr2e-3 contender=hnet_s1 optimizer.lr=2e-3
   run mtlnet-s1-lr2e-3 contender=mtlnet_s1 optimizer.lr=2e-3
 }
