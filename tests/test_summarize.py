@@ -1,0 +1,24 @@
+import shutil
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parents[1] / "experiments"))
+import summarize  # noqa: E402  (a script of experiments/, not a package)
+
+
+def test_summarize_scores_a_run_and_a_record_that_kept_only_its_metrics(trained, tmp_path, capsys):
+    run, metrics = trained
+    record = tmp_path / "record"  # a committed reproduction record: metrics.json alone
+    record.mkdir()
+    shutil.copy(run / "metrics.json", record / "metrics.json")
+    assert summarize.main([f"run={run}", f"record={record}", f"none={tmp_path}/missing*"]) == 0
+    rows = {
+        r.split("|")[1].strip(): r.split("|")[2:-1] for r in capsys.readouterr().out.splitlines()
+    }
+    mae = f"{metrics['test/mae_mm']:.3f}"
+    assert [c.strip() for c in rows["run"][:2]] == ["1", mae]
+    assert [c.strip() for c in rows["record"][:2]] == ["1", mae]
+    # the record has no per-scene file: no family figures and no worst scene
+    assert [c.strip() for c in rows["record"][4:]] == ["–"] * 4
+    assert "–" not in rows["run"][-1]  # the run names its worst scene
+    assert [c.strip() for c in rows["none"]] == ["0"] + ["–"] * 7
