@@ -101,8 +101,10 @@ def main() -> None:
         results = [band_errors(pred, depth, BANDS_MM) for _, pred, depth in runs]
         share = results[0][1]
         mae = np.stack([r[0] for r in results])
-        std = mae.std(axis=0, ddof=1) if len(mae) > 1 else np.zeros(mae.shape[1])
-        cells = [f"{m:.2f} ± {s:.2f}" for m, s in zip(mae.mean(axis=0), std, strict=True)]
+        cells = [f"{m:.2f}" for m in mae.mean(axis=0)]
+        if len(mae) > 1:  # one run has no spread to print
+            std = mae.std(axis=0, ddof=1)
+            cells = [f"{c} ± {s:.2f}" for c, s in zip(cells, std, strict=True)]
         rows.append(f"| {label} | {len(folders)} | " + " | ".join(cells) + " |")
     print("| MAE (mm) by height above the plane | runs | " + " | ".join(names) + " |")
     print("|---|---:|" + "---:|" * len(names))
