@@ -191,4 +191,12 @@ round20() {
   # 0.93), and the depth is worse: 0.237 ± 0.041 against 0.200 ± 0.007, held-out 0.293 ± 0.058.
   run occ0.02-bound0.5 loss.occlusion=0.02 model.net.fusion_bound=0.5
 }
-"${@:-round20}"
+round21() {
+  # ODMV-Net's depth loss is pure L1 (round 9: -18 % at S = 4); of the baselines only UNet was
+  # tried with it (no gain). The other three are offered it too; UHRNet (the best baseline,
+  # about 30 min a run) first.
+  run uhrnet-s1-l1 contender=uhrnet_s1 loss.alpha=0
+  run mtlnet-s1-l1 contender=mtlnet_s1 loss.alpha=0
+  run hnet-s1-l1 contender=hnet_s1 loss.alpha=0
+}
+"${@:-round21}"
