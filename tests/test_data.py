@@ -291,3 +291,48 @@ def test_height_target_puts_the_reference_plane_at_zero(tiny_dataset, tmp_path):
     torch.testing.assert_close(dm.norm.depth_mm(s["depth"]), s["depth_mm"])
     height_mm = 150.0 - s["depth_mm"]
     torch.testing.assert_close(s["depth"], height_mm / 10.0)  # up, in half ranges
+
+
+@pytest.mark.parametrize("views", [VIEW_SETS[1], VIEW_SETS[3]])
+def test_quarter_turns_turn_each_training_sample_and_take_each_view_from_the_one_mapped_onto_it(
+    tiny_dataset, tmp_path, views
+):
+    from odmv.data.augment import NEXT, source_views
+
+    # a turn hands view v's role to NEXT[v] (pinned by the renderer, test_render.py): after
+    # one turn, "right" holds what "down" saw
+    assert source_views(VIEW_SETS[4], 1) == [v for w in VIEW_SETS[4] for v in NEXT if NEXT[v] == w]
+    assert source_views(VIEW_SETS[4], 1) == ["down", "left", "up", "right"]
+    assert source_views(VIEW_SETS[4], 2) == ["left", "up", "right", "down"]
+    plain = _dm(tiny_dataset, tmp_path, views=VIEW_SETS[4], reference=True, with_phase=True)
+    dm = _dm(tiny_dataset, tmp_path, views=views, reference=True, with_phase=True, augment="rot90")
+    torch.manual_seed(0)
+    turns = []
+    for i in range(24):  # three epochs of the 8 training scenes
+        i %= len(plain.datasets["train"])
+        s, full = dm.datasets["train"][i], plain.datasets["train"][i]
+        matches = []
+        for k in range(4):
+            idx = [VIEW_SETS[4].index(v) for v in source_views(views, k)]
+            turn = lambda x, k=k: torch.rot90(x, k, dims=(-2, -1))  # noqa: E731
+            per_view = {  # channels per view: 1 fringe, 1 lit, 3 inputs, 2 phase
+                n: full[n].reshape(4, -1, 64, 64)[idx].reshape(-1, 64, 64)
+                for n in ("fringes", "lit", "inputs", "phase_target")
+            }
+            if all(torch.equal(s[n], turn(x)) for n, x in per_view.items()) and all(
+                torch.equal(s[n], turn(full[n])) for n in ("depth", "valid", "shadowed", "unlit")
+            ):
+                matches.append(k)
+        assert len(matches) == 1, (i, matches)  # one turn explains every array of the sample
+        turns += matches
+        assert s["fringes"].shape == (len(views), 64, 64)
+    assert set(turns) == {0, 1, 2, 3}
+    # validation and test are not turned
+    chosen = [VIEW_SETS[4].index(v) for v in views]
+    assert torch.equal(
+        dm.datasets["val"][0]["fringes"], plain.datasets["val"][0]["fringes"][chosen]
+    )
+    with pytest.raises(DataError, match="square"):
+        _dm(tiny_dataset, tmp_path, resolution=[64, 48], augment="rot90")
+    with pytest.raises(DataError, match="data.augment"):
+        _dm(tiny_dataset, tmp_path, augment="mirror")

@@ -1,15 +1,18 @@
 """Physics of the digital twin: exact depth, exact shadows, phase and triangulation closure."""
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
-from helpers import FRINGE, RIG, render
+from helpers import CLEAN, FRINGE, RIG, render
 
+from odmv.data.augment import NEXT
 from odmv.fpp import triangulate_depth, unwrap_temporal, wrapped_phase
 from odmv.io.manifest import fringe_name
 from odmv.rig import VIEW_NAMES
-from odmv.sim.render import RenderConfig
+from odmv.sim.render import RenderConfig, render_scene
+from odmv.sim.scenes import Scene, build_scene, draw_spec
 
 
 def _plane_hits(size, normal, point):
@@ -167,3 +170,26 @@ def test_noise_gamma_and_defocus_change_images_as_expected():
     assert not np.allclose(gamma.fringes[key], clean.fringes[key])
     for img in list(noisy.fringes.values()) + list(gamma.fringes.values()):
         assert img.dtype == np.float32 and img.min() >= 0 and img.max() <= 1.0
+
+
+def test_a_quarter_turn_of_the_scene_turns_the_images_and_hands_each_view_on():
+    # the rig's symmetry behind data.augment=rot90: exact without the lens's tangential terms
+    k1, k2, _, _ = RIG.camera.distortion
+    rig = dataclasses.replace(
+        RIG, camera=dataclasses.replace(RIG.camera, distortion=(k1, k2, 0, 0))
+    )
+    scene = build_scene(draw_spec("pcb", np.random.default_rng(3)))
+    turn = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])  # +90 degrees about the camera axis
+    turned = Scene(scene.triangles @ turn.T, scene.albedo)
+    a, b = (
+        render_scene(s, rig, 48, 48, FRINGE, VIEW_NAMES, CLEAN, np.random.default_rng(0))
+        for s in (scene, turned)
+    )
+    np.testing.assert_allclose(b.depth_mm, np.rot90(a.depth_mm), atol=1e-4)
+    for v in VIEW_NAMES:
+        assert np.array_equal(b.lit[NEXT[v]], np.rot90(a.lit[v]))
+    assert len(a.fringes) == 4 * (3 * 12 + 1)  # every sequence and the uniform image
+    for name, image in a.fringes.items():  # "<view>_f<frequency>_s<step>.exr", "<view>_uniform.exr"
+        view, rest = name.split("_", 1)
+        np.testing.assert_allclose(b.fringes[f"{NEXT[view]}_{rest}"], np.rot90(image), atol=1e-4)
+    assert a.lit["right"].mean() != a.lit["up"].mean()  # the views differ: the test can fail

@@ -46,6 +46,17 @@ def test_train_writes_checkpoints_metrics_and_tensorboard(trained):
     assert ckpt["hyper_parameters"]["views"] == ["right", "down", "left", "up"]
 
 
+@pytest.mark.parametrize("model", ["odmvnet", "mtlnet"])
+def test_quarter_turn_augmentation_trains_a_one_view_net(tiny_dataset, tmp_path, model):
+    # views=1 with the reference and MTLNet's phase targets: every per-view array is turned
+    extra = [f"model={model}", "views=1", "reference=true", "data.augment=rot90"]
+    overrides = tiny_overrides(tiny_dataset, tmp_path, *extra)
+    if model == "mtlnet":  # a 2D net: no 3D blocks to set
+        overrides.remove("model.net.blocks=1")
+    metrics = train(compose_config("train", overrides))
+    assert np.isfinite(metrics["test/mae_mm"]) and metrics["views"] == ["right"]
+
+
 def test_resume_continues_from_the_saved_epoch(trained, tiny_dataset, tmp_path):
     out, _ = trained
     last = out / "checkpoints" / "last.ckpt"

@@ -15,6 +15,7 @@ from lightning.pytorch.overrides.distributed import UnrepeatedDistributedSampler
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from torch.utils.data import ConcatDataset, DistributedSampler
 
+from odmv.data.augment import AUGMENTS, QuarterTurns
 from odmv.data.cache import ArrayCache
 from odmv.data.dataset import (
     DataError,
@@ -28,6 +29,7 @@ from odmv.data.dataset import (
 )
 from odmv.data.normalize import Normalization
 from odmv.io.manifest import MANIFEST, Manifest, ManifestError, load_manifest
+from odmv.rig import VIEW_NAMES
 
 #: The splits each Lightning stage reads (evaluation never decodes the training split).
 _STAGE_SPLITS = {
@@ -51,6 +53,9 @@ class FPPDataModule(L.LightningDataModule):
     indices; needs a dataset with full sequences). Each step is one more sample per scene, with
     its own reference phase; validation and test keep ``fringe_step``, so the protocol's
     metrics do not change. None: the paper's one image per scene.
+    ``augment``: beyond the paper, ``"rot90"`` turns each training sample by a random number of
+    quarter turns, the rig's symmetry (:mod:`odmv.data.augment`; needs square images and a
+    dataset of all four views, which the train split then loads). None: no augmentation.
     """
 
     def __init__(
@@ -76,6 +81,7 @@ class FPPDataModule(L.LightningDataModule):
         render: bool = True,
         reference: bool | str = False,
         train_steps: str | list[int] | None = None,
+        augment: str | None = None,
         progress: bool = True,
     ):
         super().__init__()
@@ -96,7 +102,9 @@ class FPPDataModule(L.LightningDataModule):
         self.depth_target = depth_target
         self.simulate = simulate if render else None
         self.reference = reference
-        self.train_steps = train_steps
+        if augment not in AUGMENTS:
+            raise DataError(f"data.augment: {augment!r} unknown; choose null or rot90")
+        self.train_steps, self.augment = train_steps, augment
         self.progress = progress
         self.manifest: Manifest | None = None
         self.spec: SampleSpec | None = None
@@ -131,12 +139,17 @@ class FPPDataModule(L.LightningDataModule):
                 continue
             ids = self.splits[name]
             specs = self._train_specs() if name == "train" and self.train_steps else [self.spec]
+            turned = name == "train" and self.augment is not None
+            if turned:  # every view is loaded: a turn maps each view onto another
+                specs = [replace(spec, views=self._all_views()) for spec in specs]
             parts = [
                 FringeDataset(
                     self.manifest, ids, spec, self.norm, self._checked_cache(name, ids, spec)
                 )
                 for spec in specs
             ]
+            if turned:
+                parts = [QuarterTurns(part, self.spec.views) for part in parts]
             self.datasets[name] = parts[0] if len(parts) == 1 else ConcatDataset(parts)
 
     def _read_manifest(self) -> None:
@@ -201,6 +214,20 @@ class FPPDataModule(L.LightningDataModule):
                 "images=full)"
             )
         return [replace(self.spec, step=self._step(s)) for s in steps]
+
+    def _all_views(self) -> tuple[str, ...]:
+        m = self.manifest
+        if not set(VIEW_NAMES) <= set(m.views):
+            raise DataError(
+                f"data.augment: {m.root} holds the views {list(m.views)}; a quarter turn "
+                f"maps each view onto another, so it needs all of {list(VIEW_NAMES)}"
+            )
+        if self.spec.height_px != self.spec.width_px:
+            raise DataError(
+                f"data.augment: a quarter turn needs square images, not "
+                f"data.resolution {self.spec.height_px}x{self.spec.width_px}"
+            )
+        return VIEW_NAMES
 
     def _step(self, s) -> int:
         n = self.manifest.fringe.steps
