@@ -5,7 +5,8 @@
 Each argument is ``LABEL=GLOB`` (run folders holding test_predictions.npz, or --file).
 Heights are in mm above the base plane, the largest ground-truth depth of the split (the plane
 is the farthest surface the camera sees). Prints a markdown table: the share of valid pixels
-in each height band, then per label the MAE in each band, mean ± std over the matched runs.
+in each height band, then per label the scenes each run's file holds (a committed reproduction
+record keeps only its figure scenes) and the MAE in each band, mean ± std over the matched runs.
 
     python experiments/height_errors.py --tall 8 'UNet=outputs/reproduce/mini/unet-s1-seed*'
 
@@ -105,10 +106,13 @@ def main() -> None:
         if len(mae) > 1:  # one run has no spread to print
             std = mae.std(axis=0, ddof=1)
             cells = [f"{c} ± {s:.2f}" for c, s in zip(cells, std, strict=True)]
-        rows.append(f"| {label} | {len(folders)} | " + " | ".join(cells) + " |")
-    print("| MAE (mm) by height above the plane | runs | " + " | ".join(names) + " |")
-    print("|---|---:|" + "---:|" * len(names))
-    print("| share of valid pixels | – | " + " | ".join(f"{s * 100:.1f} %" for s in share) + " |")
+        # a reproduction record keeps only its figure scenes: say how many each run scored
+        scenes = "/".join(sorted({str(len(ids)) for ids, _, _ in runs}))
+        rows.append(f"| {label} | {len(folders)} | {scenes} | " + " | ".join(cells) + " |")
+    print("| MAE (mm) by height above the plane | runs | scenes | " + " | ".join(names) + " |")
+    print("|---|---:|---:|" + "---:|" * len(names))
+    cells = " | ".join(f"{s * 100:.1f} %" for s in share)
+    print(f"| share of valid pixels | – | – | {cells} |")
     print("\n".join(rows))
     if args.tall is not None:
         print_tall(groups, args.tall)
