@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 
 import numpy as np
 
@@ -22,7 +21,7 @@ from odmv.data.augment import NEXT
 from odmv.io.manifest import ManifestError, load_manifest
 from odmv.sim.render import RenderConfig, render_scene
 from odmv.sim.scenes import Scene, build_scene
-from odmv.sim.writer import SCENE_SPEC_FILE
+from odmv.sim.writer import SCENE_SPEC_FILE, render_config, scene_record
 
 TURN = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # +90 deg about z
 
@@ -58,8 +57,7 @@ def main() -> None:
         raise SystemExit(f"error: {e}") from None
     if set(NEXT) - set(m.views) or m.height_px != m.width_px:
         raise SystemExit(f"error: {args.root}: needs square images of all four views")
-    sim = m.extra.get("simulation", {})
-    cfg = RenderConfig(**{**sim.get("render", {}), "full_well_e": 0.0, "read_noise": 0.0})
+    cfg = dataclasses.replace(render_config(m), full_well_e=0.0, read_noise=0.0)
     k1, k2, _, _ = m.rig.camera.distortion
     lens = dataclasses.replace(m.rig.camera, distortion=(k1, k2, 0.0, 0.0))
     radial = dataclasses.replace(m.rig, camera=lens)
@@ -69,10 +67,10 @@ def main() -> None:
     )
     print("|---|---|---:|---:|---:|---:|---:|---:|")
     for s in m.scenes[: args.scenes]:
-        path = m.scene_dir(s["id"]) / SCENE_SPEC_FILE
         try:
-            spec = json.loads(path.read_text())["spec"]
+            spec = scene_record(m, s["id"])["spec"]
         except (OSError, ValueError, KeyError) as e:
+            path = m.scene_dir(s["id"]) / SCENE_SPEC_FILE
             raise SystemExit(f"error: {path}: not a scene record ({e})") from None
         scene = build_scene(spec)
         cells = []

@@ -221,12 +221,21 @@ def _worker_init():
     OpenEXR.set_global_thread_count(0)
 
 
+def scene_record(m: Manifest, sid: str) -> dict:
+    """A stored scene's ``scene.json``: its spec and seed sequences."""
+    return json.loads((m.scene_dir(sid) / SCENE_SPEC_FILE).read_text())
+
+
+def render_config(m: Manifest) -> RenderConfig:
+    """The render settings a synthetic dataset was written with (its manifest's record)."""
+    return RenderConfig(**m.extra.get("simulation", {}).get("render", {}))
+
+
 def rerender(root: str | Path, sid: str) -> tuple[Scene, Rendered]:
     """Render a stored scene again from its ``scene.json`` and the manifest (bit-identical)."""
     m = load_manifest(root)
-    record = json.loads((m.scene_dir(sid) / SCENE_SPEC_FILE).read_text())
-    sim = m.extra.get("simulation", {})
-    cfg = RenderConfig(**sim.get("render", {}))
+    record = scene_record(m, sid)
+    cfg = render_config(m)
     scene = build_scene(record["spec"])
     rng = np.random.default_rng(record["noise_seed_sequence"])
     r = render_scene(scene, m.rig, m.height_px, m.width_px, m.fringe, m.views, cfg, rng, m.images)
