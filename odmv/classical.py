@@ -77,13 +77,8 @@ def classical_row(
         gt = torch.from_numpy(raw["depth_mm"][None].astype(np.float32))
         pred = torch.from_numpy(np.nan_to_num(depth, nan=0.0)[None, None].astype(np.float32))
         ok = torch.from_numpy(np.isfinite(depth)[None, None]).float()
-        masks = subset_masks(
-            {
-                "valid": torch.isfinite(gt).float(),
-                "shadowed": torch.from_numpy(raw["shadowed"][None]).float(),
-                "unlit": torch.from_numpy(raw["unlit"][None]).float(),
-            }
-        )
+        subsets = {k: torch.from_numpy(raw[k][None]).float() for k in SUBSETS if k != "all"}
+        masks = subset_masks({"valid": torch.isfinite(gt).float()} | subsets)
         reconstructed = {k: mask * ok for k, mask in masks.items()}
         row = {"scene": sid, "family": families.get(sid, "")}
         for k, v in per_image_subset_errors(pred, gt, reconstructed).items():

@@ -7,8 +7,10 @@ in at least one input view, where occlusion handling matters); images with no se
 do not count towards the RMSE. MSE is in mm² (the paper's tables label it "mm").
 
 Subsets (odmv.data.subsets): ``all`` valid pixels, ``shadowed`` (inside some projector's
-footprint, unlit by one that covers it) and ``unlit`` (lit by no projector), all from the
-dataset's ground truth of every projector, so models with different inputs compare.
+footprint, unlit by one that covers it), ``unlit`` (lit by no projector), ``first_unlit``
+(unlit by the first projector, lit by another) and ``first_shadowed`` (of those, inside the
+first projector's footprint), all from the dataset's ground truth of every
+projector, so models with different inputs compare.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from __future__ import annotations
 import torch
 from torchmetrics import Metric
 
-SUBSETS = ("all", "shadowed", "unlit")
+SUBSETS = ("all", "shadowed", "unlit", "first_unlit", "first_shadowed")
 
 
 def _masked_sums(pred_mm, target_mm, mask) -> tuple[torch.Tensor, ...]:

@@ -280,7 +280,7 @@ def net_input(batch: dict) -> torch.Tensor:
 def subset_masks(batch: dict) -> dict[str, torch.Tensor]:
     """Metric pixel masks (B x 1 x H x W) from the batch's ground truth: odmv.data.subsets."""
     valid = batch["valid"]
-    return {"all": valid, "shadowed": batch["shadowed"] * valid, "unlit": batch["unlit"] * valid}
+    return {"all": valid} | {k: batch[k] * valid for k in SUBSETS if k != "all"}
 
 
 def write_json(path: Path, data: dict) -> None:

@@ -35,6 +35,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 METRICS = ("mae_mm", "mse_mm2", "rmse_mm")
+#: the subsets where the first view (the one of every S = 1 row) has no fringe and another
+#: view has, as the report names them (odmv.data.subsets); newer than the others, so older
+#: records lack them
+FIRST_VIEW = {"first_unlit": "first-unlit", "first_shadowed": "first-shadowed"}
 FIGURE_SCENES = 3  # test scenes in Fig. 6 and 7: one per scene family
 
 
@@ -162,6 +166,17 @@ def _fmt(mean: float, std: float, digits: int = 4) -> str:
     return f"{mean:.{digits}f}" + (f" ± {std:.{digits}f}" if np.isfinite(std) else "")
 
 
+def _subset_cell(c: Cell, key: str) -> str:
+    """A statistic of a subset metric that older records may lack: `–` where no run has it,
+    and how many seeds have it where only some do."""
+    if not c.runs:
+        return "missing"
+    n = int(np.isfinite(c.values(key)).sum())
+    if not n:
+        return "–"
+    return _fmt(*c.stat(key)) + (f" ({n} of {len(c.runs)} seeds)" if n < len(c.runs) else "")
+
+
 def _paper(row: Row, i: int) -> str:
     return f"{row.paper[i]:.4f}" if row.paper else "–"
 
@@ -177,6 +192,7 @@ def table_markdown(name: str, cells: list[Cell]) -> list[str]:
         "MAE shadowed (mm)",
         "MSE shadowed (mm²)",
         "RMSE shadowed (mm)",
+        *[f"MAE {name} (mm)" for name in FIRST_VIEW.values()],
     ]
     head += ["coverage (%)"] if classical else []
     head += ["parameters", "train time (min)", "paper MAE", "paper MSE", "paper RMSE"]
@@ -186,6 +202,7 @@ def table_markdown(name: str, cells: list[Cell]) -> list[str]:
         cols = [c.row.label, str(len(c.runs)) if c.runs else "–"]
         for sub in ("", "_shadowed"):
             cols += [_fmt(*c.stat(f"test/{m}{sub}")) for m in METRICS]
+        cols += [_subset_cell(c, f"test/mae_mm_{k}") for k in FIRST_VIEW]
         if classical:
             cov = c.stat("test/coverage")[0]
             cols.append(f"{100 * cov:.1f}" if np.isfinite(cov) else "–")
@@ -204,26 +221,28 @@ def improvements_markdown(cells: list[Cell]) -> list[str]:
     lines = [
         "### ODMV-Net's MAE reduction against each model (%; positive: ODMV-Net is better)",
         "",
-        "| against | paper | ours, all pixels | ours, shadowed pixels |",
-        "|---|---:|---:|---:|",
+        "| against | paper | ours, all pixels | ours, shadowed pixels | "
+        + " | ".join(f"ours, {name} pixels" for name in FIRST_VIEW.values())
+        + " |",
+        "|---|---:|---:|---:|" + "---:|" * len(FIRST_VIEW),
     ]
     for c in cells:
         if c is ours:
             continue
         vals = []
-        for sub in ("", "_shadowed"):
+        for sub in ("", "_shadowed", *(f"_{k}" for k in FIRST_VIEW)):
             base, mine = c.stat(f"test/mae_mm{sub}")[0], ours.stat(f"test/mae_mm{sub}")[0]
             ok = np.isfinite(base) and np.isfinite(mine) and base > 0
-            vals.append(f"{100 * (base - mine) / base:.1f}" if ok else "missing")
+            vals.append(f"{100 * (base - mine) / base:.1f}" if ok else "–" if sub else "missing")
         paper = PAPER_IMPROVEMENT.get(c.row.model) if c.row.views == 1 else None
-        lines.append(f"| {c.row.label} | {paper if paper else '–'} | {vals[0]} | {vals[1]} |")
+        lines.append(f"| {c.row.label} | {paper if paper else '–'} | " + " | ".join(vals) + " |")
     return lines + [""]
 
 
 CLAIMS_RULE = (
     "Each claim compares mean test MAE over seeds. difference: how much lower the claimed "
     "better row is (negative: it is higher) ± its standard error over seeds (sqrt(s_a²/n_a + "
-    "s_b²/n_b); for the shadowed claim, over the seeds both rows ran). Verdict: `holds` or "
+    "s_b²/n_b); for the subset claims, over the seeds both rows ran). Verdict: `holds` or "
     "`does not hold` when the difference is more than twice its standard error, else `within "
     "seed noise` and which way the means lean; with two seeds this is a weak test."
 )
@@ -251,17 +270,18 @@ def _lower(better: Cell, worse: Cell) -> tuple[float, float]:
     return diff, float(np.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b)))
 
 
-def _shadow_gain(many: Cell, one: Cell) -> tuple[float, float, float, float]:
-    """The relative MAE gain of ``many`` views over ``one`` on all and on shadowed pixels
-    (means over seeds), and how much larger the shadowed gain is (mean and standard error over
-    the seeds both rows ran)."""
+def _subset_gain(many: Cell, one: Cell, subset: str) -> tuple[float, float, float, float]:
+    """The relative MAE gain of ``many`` views over ``one`` on all pixels and on ``subset``'s
+    (means over seeds), and how much larger the subset's gain is (mean and standard error over
+    the seeds both rows ran with the subset's metric)."""
     by_seed = {r.metrics.get("seed"): r.metrics for r in one.runs}
+    key = f"test/mae_mm_{subset}"
     pairs = []
     for r in many.runs:
         base = by_seed.get(r.metrics.get("seed"))
-        if base is None:
+        if base is None or key not in base or key not in r.metrics:
             continue
-        g = [1 - r.metrics[f"test/mae_mm{s}"] / base[f"test/mae_mm{s}"] for s in ("", "_shadowed")]
+        g = [1 - r.metrics[k] / base[k] for k in ("test/mae_mm", key)]
         pairs.append(g)
     if not pairs:
         return np.nan, np.nan, np.nan, np.nan
@@ -275,7 +295,8 @@ def claims_markdown(tables: dict[str, list[Cell]]) -> list[str]:
     """The paper's claims that the three tables can test, each with our evidence and a
     verdict: more views are better (Sec. III.A), every Table I module improves on the row
     before, ODMV-Net beats each single-view baseline (Table II), and the views' gain is larger
-    where a projector is shadowed (self-occluded regions)."""
+    where a projector is shadowed (self-occluded regions), tested on the shadowed pixels and on
+    those the single view leaves unlit (FIRST_VIEW)."""
     lines = [
         "### The paper's claims on this twin",
         "",
@@ -309,21 +330,23 @@ def claims_markdown(tables: dict[str, list[Cell]]) -> list[str]:
             c,
             f" (reduction {ours_pct}; paper {paper} %)",
         )
-    g_all, g_sh, d, se = _shadow_gain(views[-1], views[0])
-    gains = (
-        f"gain {100 * g_all:.1f} % on all, {100 * g_sh:.1f} % on shadowed pixels"
-        if np.isfinite(d)
-        else "–"
-    )
-    shown = f"{100 * d:+.1f} ± {100 * se:.1f} points" if np.isfinite(se) else "–"
-    claim = f"{views[-1].row.label} gains more over {views[0].row.label} on shadowed pixels"
-    lines.append(f"| {claim} | {gains} | {shown} | {_verdict(d, se)} |")
+    for subset, name in ({"shadowed": "shadowed"} | FIRST_VIEW).items():
+        g_all, g_sub, d, se = _subset_gain(views[-1], views[0], subset)
+        gains = (
+            f"gain {100 * g_all:.1f} % on all, {100 * g_sub:.1f} % on {name} pixels"
+            if np.isfinite(d)
+            else "–"
+        )
+        shown = f"{100 * d:+.1f} ± {100 * se:.1f} points" if np.isfinite(se) else "–"
+        claim = f"{views[-1].row.label} gains more over {views[0].row.label} on {name} pixels"
+        lines.append(f"| {claim} | {gains} | {shown} | {_verdict(d, se)} |")
     return lines + [""]
 
 
 def table_csv(path: Path, cells: list[Cell]) -> None:
-    keys = [f"test/{m}{s}" for s in ("", "_shadowed", "_unlit") for m in METRICS]
-    keys += ["test/coverage", "test/share_shadowed", "test/share_unlit"]
+    subsets = ("", "_shadowed", "_unlit", *(f"_{k}" for k in FIRST_VIEW))
+    keys = [f"test/{m}{s}" for s in subsets for m in METRICS]
+    keys += ["test/coverage"] + [f"test/share{s}" for s in subsets[1:]]
     rows = []
     for c in cells:
         r = {"row": c.row.label, "model": c.row.model, "views": c.row.views}
@@ -569,8 +592,12 @@ def write_report(
         "mm); mean ± std over seeds (std where a row has two or more). `shadowed`: pixels inside "
         "some projector's footprint but unlit by a projector that covers them, from the "
         "dataset's ground truth of all four projectors, so every model is scored on the same "
-        "pixels. Paper columns: the paper's published numbers, for its 480 px protocol; the "
-        "paper gives no numbers for S = 1..3. `missing`: no finished run for that row.",
+        "pixels. `first-unlit`: pixels the first projector (right, the one view of every S = 1 "
+        "row) leaves unlit and another lights, where only more views add fringes; most lie "
+        "outside its footprint, a band of the field. `first-shadowed`: those inside its "
+        "footprint, hidden by occlusion. `–`: the row's records predate those two. Paper "
+        "columns: the paper's published numbers, for its 480 px protocol; the paper gives no "
+        "numbers for S = 1..3. `missing`: no finished run for that row.",
         "",
     ]
     for name, cells in tables.items():
@@ -581,15 +608,12 @@ def write_report(
         lines.append("")
     lines += improvements_markdown(tables["table2"])
     lines += claims_markdown(tables)
-    shares = [r.metrics.get("test/share_shadowed") for r in runs if r.model != "classical"]
-    shares = [s for s in shares if s is not None]
+    shares = []  # properties of the test split, alike in every run that has them
+    for k, name in ({"shadowed": "shadowed", "unlit": "unlit"} | FIRST_VIEW).items():
+        v = [r.metrics[f"test/share_{k}"] for r in runs if f"test/share_{k}" in r.metrics]
+        shares += [f"{name} {100 * float(np.mean(v)):.1f} %"] if v else []
     if shares:
-        unlit = np.mean([r.metrics.get("test/share_unlit", np.nan) for r in runs])
-        lines += [
-            f"Pixel subsets of the test split: shadowed {100 * float(np.mean(shares)):.1f} %, "
-            f"unlit {100 * float(unlit):.1f} % of the valid pixels.",
-            "",
-        ]
+        lines += [f"Pixel subsets of the test split: {', '.join(shares)} of the valid pixels.", ""]
     names = comparison_figures(out, tables["table2"], figures, error_scale_mm)
     if names:
         lines += ["### Figures (Table II models, of each row its lowest seed with predictions)", ""]

@@ -232,12 +232,24 @@ def test_a_preset_never_renders_into_a_named_dataset(tmp_path):
 def test_metric_subsets_use_every_projector_whatever_the_views(tiny_dataset, tmp_path):
     one = _dm(tiny_dataset, tmp_path, views=VIEW_SETS[1]).datasets["test"][0]
     four = _dm(tiny_dataset, tmp_path, views=VIEW_SETS[4]).datasets["test"][0]
-    for key in ("shadowed", "unlit"):
+    for key in ("shadowed", "unlit", "first_unlit", "first_shadowed"):
         assert one[key].shape == (1, 64, 64)
         assert torch.equal(one[key], four[key])
-    assert one["shadowed"].sum() > 0 and one["unlit"].sum() > 0
+        assert one[key].sum() > 0
     lit = four["lit"] > 0.5
     assert torch.equal(four["unlit"][0] > 0.5, ~lit.any(0))
+    # first_unlit: where the one view a single-view net sees (right) has no fringe, another has
+    assert VIEW_SETS[1] == ("right",) and VIEW_SETS[4][0] == "right"
+    hidden = four["first_unlit"][0] > 0.5
+    assert not (hidden & lit[0]).any() and not (hidden & ~lit[1:].any(0)).any()
+    assert torch.equal(hidden, ~lit[0] & lit[1:].any(0))
+    # first_shadowed: the part of it that occlusion hides (inside right's footprint)
+    shadowed_first = four["first_shadowed"][0] > 0.5
+    assert (hidden & ~shadowed_first).any()  # outside right's footprint: a 23 mm band
+    assert (
+        not (shadowed_first & ~hidden).any()
+        and not (shadowed_first & ~(four["shadowed"][0] > 0.5)).any()
+    )
     assert one["family"] in ("primitives", "pcb", "freeform")
 
 
@@ -326,6 +338,9 @@ def test_quarter_turns_turn_each_training_sample_and_take_each_view_from_the_one
         assert len(matches) == 1, (i, matches)  # one turn explains every array of the sample
         turns += matches
         assert s["fringes"].shape == (len(views), 64, 64)
+        # the subsets that name the first projector do not survive a turn, which hands its role
+        # to another
+        assert "first_unlit" in full and "first_unlit" not in s and "first_shadowed" not in s
     assert set(turns) == {0, 1, 2, 3}
     # validation and test are not turned
     chosen = [VIEW_SETS[4].index(v) for v in views]

@@ -2,7 +2,7 @@
 
 from pathlib import Path
 
-from odmv.report import Run, build_tables, claims_markdown
+from odmv.report import Run, _subset_cell, build_tables, claims_markdown
 
 SHADOWED = "S=4 (all) gains more over S=1 (right) on shadowed pixels"
 
@@ -46,3 +46,23 @@ def test_claims_get_verdicts_from_the_seed_spread():
         if r.n_views == 4:
             r.metrics["test/mae_mm_shadowed"] /= 2
     assert _claims(runs)[SHADOWED] == "holds"
+
+
+def test_first_unlit_claim_pairs_only_the_seeds_whose_records_have_the_metric():
+    first = "S=4 (all) gains more over S=1 (right) on first-unlit pixels"
+    runs = [_run("odmvnet", s, 0.3 - 0.02 * s, 0.6, k, "multitask") for s in (1, 4) for k in (0, 1)]
+    assert _claims(runs)[first] == "missing"  # records from before the metric
+    assert _claims(runs)[first.replace("unlit", "shadowed")] == "missing"
+    # seeds 2 and 3 have it: four views halve the error where the one view has no fringe
+    for k, (one, four) in zip((2, 3), ((0.8, 0.4), (0.9, 0.5)), strict=True):
+        runs += [_run("odmvnet", s, 0.3 - 0.02 * s, 0.6, k, "multitask") for s in (1, 4)]
+        runs[-2].metrics["test/mae_mm_first_unlit"] = one
+        runs[-1].metrics["test/mae_mm_first_unlit"] = four
+    assert _claims(runs)[first] == "holds"
+    ours = next(c for c in build_tables(runs)["views"] if c.row.views == 4)
+    assert _subset_cell(ours, "test/mae_mm_first_unlit") == "0.4500 ± 0.0707 (2 of 4 seeds)"
+    # a gain on those pixels no larger than on all pixels (8 %) is no claim
+    for r in runs:
+        if r.n_views == 4 and "test/mae_mm_first_unlit" in r.metrics:
+            r.metrics["test/mae_mm_first_unlit"] *= 2
+    assert _claims(runs)[first] == "does not hold"

@@ -68,6 +68,16 @@ def test_subsets_of_a_box_scene():
     for x, y in ((4.5, 0), (-4.5, 0), (0, 4.5), (0, -4.5)):
         u, v = cam.project(np.array([x, y, 0.0])).astype(int)
         assert shadowed[v, u], (x, y)
+    # the one view (right, lighting from +x) misses the ground on the box's -x side to occlusion,
+    # and a band of the field (|y| beyond its footprint's 23 mm) to its footprint; others light both
+    hidden, occluded = masks["first_unlit"][0], masks["first_shadowed"][0]
+    for (x, y), want in {
+        (-4.5, 0): (True, True),
+        (4.5, 0): (False, False),
+        (0, 15): (True, False),
+    }.items():
+        u, v = cam.project(np.array([x, y, 0.0])).astype(int)
+        assert (hidden[v, u], occluded[v, u]) == want, (x, y)
     # the footprint computed from depth and the rig (the fallback) agrees with the render's
     fallback = footprint_from_depth(RIG, r.depth_mm, VIEW_NAMES)
     assert (fallback == foot).mean() > 0.995

@@ -23,10 +23,12 @@ import torch
 NEXT = {"right": "up", "up": "left", "left": "down", "down": "right"}
 PREV = {b: a for a, b in NEXT.items()}
 AUGMENTS = (None, "rot90")
-#: a sample's per-view arrays (each view's channels together along the first axis), and the
-#: arrays that belong to the scene as a whole
+#: a sample's per-view arrays (each view's channels together along the first axis), the arrays
+#: that belong to the scene as a whole, and the metric subsets that name one projector (its
+#: role passes to another in a turn; training, the only use of turned samples, needs none)
 _PER_VIEW = ("fringes", "lit", "inputs", "phase_target")
 _IMAGES = ("depth", "depth_mm", "valid", "shadowed", "unlit")
+_DROPPED = ("first_unlit", "first_shadowed")
 
 
 def source_views(views: tuple[str, ...], k: int) -> list[str]:
@@ -44,7 +46,7 @@ def turn_sample(sample: dict, have: tuple[str, ...], want: tuple[str, ...], k: i
     """``sample`` (holding the views ``have``) turned by ``k`` quarter turns, with the per-view
     arrays of the views ``want``."""
     idx = [have.index(v) for v in source_views(want, k)]
-    out = dict(sample)
+    out = {k: v for k, v in sample.items() if k not in _DROPPED}
     for name in _PER_VIEW:
         if name in sample:
             x = sample[name]

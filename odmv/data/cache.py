@@ -24,6 +24,8 @@ _ARRAYS = {
     "lit": np.uint8,
     "shadowed": np.uint8,
     "unlit": np.uint8,
+    "first_unlit": np.uint8,
+    "first_shadowed": np.uint8,
     "phase_target": np.float32,
 }
 
@@ -81,6 +83,8 @@ class ArrayCache:
             "lit": (s, h, w),
             "shadowed": (1, h, w),
             "unlit": (1, h, w),
+            "first_unlit": (1, h, w),
+            "first_shadowed": (1, h, w),
             "phase_target": (2 * s, h, w),
         }
         names = _names(spec)

@@ -36,7 +36,7 @@ from odmv.io.manifest import (
 from odmv.rig import check_views, size_hw
 
 #: Bumped whenever a sample gains or changes an array, so stale caches are not reused.
-SAMPLE_VERSION = 2
+SAMPLE_VERSION = 3
 
 
 class DataError(ValueError):
@@ -175,10 +175,11 @@ def load_depth(m: Manifest, sid: str, spec: SampleSpec) -> np.ndarray:
 
 def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]:
     """Raw arrays of one scene at ``spec``'s size: fringes (S,H,W) linear intensity,
-    depth_mm (1,H,W), lit (S,H,W) bool, the subsets shadowed and unlit (1,H,W) bool over every
-    projector of the dataset; with stacks also fringe_stack (S,K,H,W) and
-    projector_coord (S,H,W, NaN where unlit); with phase also phase_target (2S,H,W: sin, cos
-    of each view's input-image phase, 0 where unlit). Raises DataError naming a bad file."""
+    depth_mm (1,H,W), lit (S,H,W) bool, the subsets shadowed, unlit, first_unlit and
+    first_shadowed (1,H,W) bool over every projector of the dataset; with stacks also
+    fringe_stack (S,K,H,W) and projector_coord (S,H,W, NaN where unlit); with phase also
+    phase_target (2S,H,W: sin, cos of each view's input-image phase, 0 where unlit).
+    Raises DataError naming a bad file."""
     d = m.scene_dir(sid)
     shape = (m.height_px, m.width_px)
 
@@ -293,9 +294,10 @@ class FringeDataset(torch.utils.data.Dataset):
 
     def __getitem__(self, i: int) -> dict:
         """fringes (S,H,W) in [-1,1]; depth (1,H,W) network units; depth_mm (1,H,W); lit (S,H,W)
-        and valid (1,H,W) as 0/1 floats; the metric subsets shadowed and unlit (1,H,W, 0/1, see
-        odmv.data.subsets); scene_id and family; with stacks also fringe_stack (S,K,H,W) in
-        [-1,1] and projector_coord (S,H,W) in projector px (NaN where unlit)."""
+        and valid (1,H,W) as 0/1 floats; the metric subsets shadowed, unlit, first_unlit and
+        first_shadowed (1,H,W, 0/1, see odmv.data.subsets); scene_id and family; with stacks also
+        fringe_stack (S,K,H,W) in [-1,1] and projector_coord (S,H,W) in projector px (NaN where
+        unlit)."""
         if self.cache is not None and not self.spec.with_stacks:
             raw = self.cache.get(i)
         else:
@@ -309,6 +311,8 @@ class FringeDataset(torch.utils.data.Dataset):
             "valid": torch.isfinite(depth_mm).float(),
             "shadowed": torch.from_numpy(np.array(raw["shadowed"], np.float32)),
             "unlit": torch.from_numpy(np.array(raw["unlit"], np.float32)),
+            "first_unlit": torch.from_numpy(np.array(raw["first_unlit"], np.float32)),
+            "first_shadowed": torch.from_numpy(np.array(raw["first_shadowed"], np.float32)),
             "scene_id": self.ids[i],
             "family": self.families.get(self.ids[i], ""),
         }

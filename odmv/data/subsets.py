@@ -7,7 +7,12 @@ They never depend on which views a model sees, so every model is scored on the s
   projector whose footprint covers it, because something blocks its light or the surface faces
   away: where occlusion handling matters;
 - ``unlit``: lit by no projector (e.g. image corners outside every footprint, or a pit shadowed
-  from all sides).
+  from all sides);
+- ``first_unlit``: unlit by the dataset's first projector (``right``, the one a single-view model
+  sees) but lit by another: where one view has no fringe and more views do. On the paper's rig
+  most of it lies outside the first projector's footprint (a 23 mm band of the 35.5 mm field);
+- ``first_shadowed``: the part of ``first_unlit`` inside the first projector's footprint: what
+  occlusion hides from the one view.
 
 ``shadowed`` and ``unlit`` may overlap (a pixel in one footprint, shadowed there, outside the
 others). The footprint comes from ``footprint.exr`` where the dataset has it; otherwise it is
@@ -42,9 +47,17 @@ def footprint_from_depth(rig: Rig, depth_mm: np.ndarray, views) -> np.ndarray:
 
 def subset_masks(lit: np.ndarray, footprint: np.ndarray) -> dict[str, np.ndarray]:
     """``lit`` and ``footprint`` (V, H, W) bool over all projectors -> (1, H, W) bool masks
-    ``shadowed`` and ``unlit`` (``all`` is the valid mask, not needed here)."""
+    ``shadowed``, ``unlit``, ``first_unlit`` and ``first_shadowed`` (``all`` is the valid mask,
+    not needed here)."""
     lit, footprint = lit.astype(bool), footprint.astype(bool)
     return {
         "shadowed": (footprint & ~lit).any(0)[None],
         "unlit": ~lit.any(0)[None],
-    }
+    } | first_view_subsets(lit, footprint)
+
+
+def first_view_subsets(lit, footprint) -> dict:
+    """``first_unlit`` and ``first_shadowed`` (1, H, W) bool from ``lit`` and ``footprint``
+    (V, H, W) bool over all projectors, the first projector first (numpy or torch)."""
+    hidden = ~lit[0] & lit[1:].any(0)
+    return {"first_unlit": hidden[None], "first_shadowed": (hidden & footprint[0])[None]}
