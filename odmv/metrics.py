@@ -57,6 +57,21 @@ def per_image_subset_errors(
     }
 
 
+def subset_results(stage: str, results: dict[str, dict[str, torch.Tensor]]) -> dict:
+    """The logged metrics (``test/mae_mm_shadowed``, ``test/share_shadowed``, ...) from each
+    subset's :meth:`DepthErrors.compute`; a subset's share is its part of the valid pixels."""
+    valid = results["all"]["pixels"]
+    out = {}
+    for subset, values in results.items():
+        suffix = subset_suffix(subset)
+        for name, value in values.items():
+            if name != "pixels":
+                out[f"{stage}/{name}{suffix}"] = value
+        if subset != "all":
+            out[f"{stage}/share{suffix}"] = values["pixels"] / valid.clamp_min(1)
+    return out
+
+
 class DepthErrors(Metric):
     full_state_update = False
 

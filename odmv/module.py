@@ -25,7 +25,7 @@ from lightning.pytorch.utilities import rank_zero_only
 from odmv.checkpoint import CheckpointError, check_weights, read_checkpoint
 from odmv.data.normalize import Normalization
 from odmv.losses import LossWeights, composite_loss
-from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_suffix
+from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_results
 
 
 class NonFiniteLossError(ValueError):
@@ -163,15 +163,9 @@ class FPPModule(L.LightningModule):
     def _log_metrics(self, stage: str) -> None:
         # compute() sums over ranks, so every rank logs the same values (sync_dist keeps them)
         results = {subset: self.metrics[f"{stage}_{subset}"].compute() for subset in SUBSETS}
-        valid = results["all"]["pixels"]
-        for subset, values in results.items():
-            suffix = subset_suffix(subset)
-            pixels = values.pop("pixels")
-            for name, value in values.items():
-                self.log(f"{stage}/{name}{suffix}", value.float(), sync_dist=True)
-            if subset != "all":  # the subset's share of the valid pixels
-                share = pixels / valid.clamp_min(1)
-                self.log(f"{stage}/share{suffix}", share.float(), sync_dist=True)
+        for name, value in subset_results(stage, results).items():
+            self.log(name, value.float(), sync_dist=True)
+        for subset in SUBSETS:
             self.metrics[f"{stage}_{subset}"].reset()
 
     def on_validation_epoch_end(self):
@@ -305,11 +299,8 @@ def _gather_lists(lists: dict[str, list]) -> dict[str, list]:
     return {k: _gather(lists.get(k, [])) for k in ("scene_id", "pred_mm", "depth_mm")}
 
 
-@rank_zero_only
-def write_test_outputs(folder: Path, rows: list[dict], predictions: dict[str, list]) -> None:
-    """Per-scene metrics (CSV) and the test predictions in mm (npz), each written atomically,
-    in scene order (the same files however many processes tested)."""
-    folder.mkdir(parents=True, exist_ok=True)
+def write_scene_rows(folder: Path, rows: list[dict]) -> None:
+    """Per-scene metrics as ``test_scenes.csv``, atomically, in scene order."""
     rows = sorted({r["scene"]: r for r in rows}.values(), key=lambda r: r["scene"])
     tmp = folder / f".{SCENES_CSV}.{os.getpid()}.tmp"
     with tmp.open("w", newline="") as fh:
@@ -317,6 +308,14 @@ def write_test_outputs(folder: Path, rows: list[dict], predictions: dict[str, li
         w.writeheader()
         w.writerows(rows)
     os.replace(tmp, folder / SCENES_CSV)
+
+
+@rank_zero_only
+def write_test_outputs(folder: Path, rows: list[dict], predictions: dict[str, list]) -> None:
+    """Per-scene metrics (CSV) and the test predictions in mm (npz), each written atomically,
+    in scene order (the same files however many processes tested)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    write_scene_rows(folder, rows)
     ids = np.array([s for chunk in predictions["scene_id"] for s in chunk])
     _, order = np.unique(ids, return_index=True)  # scene order, each scene once
     arrays = {
