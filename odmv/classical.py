@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from odmv.data.dataset import DataError, check_spec, load_scene, split_scenes
+from odmv.data.subsets import MASKS
 from odmv.fpp import fuse_views, period_in_camera_px, reconstruct_view
 from odmv.io.manifest import load_manifest
 from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_suffix
@@ -77,7 +78,7 @@ def classical_row(
         gt = torch.from_numpy(raw["depth_mm"][None].astype(np.float32))
         pred = torch.from_numpy(np.nan_to_num(depth, nan=0.0)[None, None].astype(np.float32))
         ok = torch.from_numpy(np.isfinite(depth)[None, None]).float()
-        subsets = {k: torch.from_numpy(raw[k][None]).float() for k in SUBSETS if k != "all"}
+        subsets = {k: torch.from_numpy(raw[k][None]).float() for k in MASKS}
         masks = subset_masks({"valid": torch.isfinite(gt).float()} | subsets)
         reconstructed = {k: mask * ok for k, mask in masks.items()}
         row = {"scene": sid, "family": families.get(sid, "")}

@@ -18,7 +18,9 @@ from __future__ import annotations
 import torch
 from torchmetrics import Metric
 
-SUBSETS = ("all", "shadowed", "unlit", "first_unlit", "first_shadowed")
+from odmv.data.subsets import MASKS
+
+SUBSETS = ("all", *MASKS)
 
 
 def _masked_sums(pred_mm, target_mm, mask) -> tuple[torch.Tensor, ...]:

@@ -24,6 +24,7 @@ from lightning.pytorch.utilities import rank_zero_only
 
 from odmv.checkpoint import CheckpointError, check_weights, read_checkpoint
 from odmv.data.normalize import Normalization
+from odmv.data.subsets import MASKS
 from odmv.losses import LossWeights, composite_loss
 from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_results
 
@@ -274,7 +275,7 @@ def net_input(batch: dict) -> torch.Tensor:
 def subset_masks(batch: dict) -> dict[str, torch.Tensor]:
     """Metric pixel masks (B x 1 x H x W) from the batch's ground truth: odmv.data.subsets."""
     valid = batch["valid"]
-    return {"all": valid} | {k: batch[k] * valid for k in SUBSETS if k != "all"}
+    return {"all": valid} | {k: batch[k] * valid for k in MASKS}
 
 
 def write_json(path: Path, data: dict) -> None:

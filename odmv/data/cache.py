@@ -17,15 +17,13 @@ from pathlib import Path
 import numpy as np
 
 from odmv.data.dataset import SampleSpec
+from odmv.data.subsets import MASKS
 
 _ARRAYS = {
     "fringes": np.float32,
     "depth_mm": np.float32,
     "lit": np.uint8,
-    "shadowed": np.uint8,
-    "unlit": np.uint8,
-    "first_unlit": np.uint8,
-    "first_shadowed": np.uint8,
+    **dict.fromkeys(MASKS, np.uint8),
     "phase_target": np.float32,
 }
 
@@ -81,10 +79,7 @@ class ArrayCache:
             "fringes": (s, h, w),
             "depth_mm": (1, h, w),
             "lit": (s, h, w),
-            "shadowed": (1, h, w),
-            "unlit": (1, h, w),
-            "first_unlit": (1, h, w),
-            "first_shadowed": (1, h, w),
+            **dict.fromkeys(MASKS, (1, h, w)),
             "phase_target": (2 * s, h, w),
         }
         names = _names(spec)

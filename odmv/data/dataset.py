@@ -18,7 +18,7 @@ import torch.nn.functional as F
 
 from odmv.data.normalize import Normalization
 from odmv.data.reference import network_input, reference_mode, reference_phase
-from odmv.data.subsets import footprint_from_depth, subset_masks
+from odmv.data.subsets import MASKS, footprint_from_depth, subset_masks
 from odmv.io.exr import ExrError, read_exr
 from odmv.io.manifest import (
     DEPTH_CHANNEL,
@@ -309,10 +309,7 @@ class FringeDataset(torch.utils.data.Dataset):
             "depth": self.norm.depth(depth_mm),
             "lit": torch.from_numpy(np.array(raw["lit"], np.float32)),
             "valid": torch.isfinite(depth_mm).float(),
-            "shadowed": torch.from_numpy(np.array(raw["shadowed"], np.float32)),
-            "unlit": torch.from_numpy(np.array(raw["unlit"], np.float32)),
-            "first_unlit": torch.from_numpy(np.array(raw["first_unlit"], np.float32)),
-            "first_shadowed": torch.from_numpy(np.array(raw["first_shadowed"], np.float32)),
+            **{k: torch.from_numpy(np.array(raw[k], np.float32)) for k in MASKS},
             "scene_id": self.ids[i],
             "family": self.families.get(self.ids[i], ""),
         }

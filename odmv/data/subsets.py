@@ -26,6 +26,9 @@ import numpy as np
 
 from odmv.rig import Rig
 
+#: the masks :func:`subset_masks` returns, each (1, H, W) per scene
+MASKS = ("shadowed", "unlit", "first_unlit", "first_shadowed")
+
 
 def footprint_from_depth(rig: Rig, depth_mm: np.ndarray, views) -> np.ndarray:
     """(V, H, W) bool: whether each pixel's surface point lies inside each projector's frustum.
