@@ -12,6 +12,7 @@ from pathlib import Path
 
 import hydra
 import lightning as L
+import torch
 from omegaconf import DictConfig, OmegaConf
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
@@ -151,6 +152,9 @@ def train(cfg: DictConfig) -> dict[str, float]:
             views=list(dm.spec.views),
             ablation=cfg.get("ablation"),
             seed=cfg.seed,
+            # floating-point sums split by thread count: the same seed on another count is
+            # another run (docs/accuracy.md, "Repeatability")
+            threads=torch.get_num_threads(),
             dataset=str(Path(dm.root).resolve()),
             overrides=" ".join(overrides),
         )

@@ -60,6 +60,16 @@ def test_same_seed_gives_identical_bytes_with_any_worker_count(reference, tmp_pa
     _same_tree(reference, out)
 
 
+def test_parallel_render_leaves_the_callers_thread_settings(tmp_path, monkeypatch):
+    # the workers run single-threaded; a caller that trains next must keep all its threads
+    for key in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        monkeypatch.delenv(key, raising=False)
+    monkeypatch.setenv("MKL_NUM_THREADS", "2")
+    assert run(_cfg(tmp_path / "ds", "scenes=2", "workers=2")) == 0
+    assert "OMP_NUM_THREADS" not in os.environ and "OPENBLAS_NUM_THREADS" not in os.environ
+    assert os.environ["MKL_NUM_THREADS"] == "2"
+
+
 def test_scene_json_re_renders_exactly(reference):
     m = load_manifest(reference)
     _, r = rerender(reference, "000002")

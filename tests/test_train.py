@@ -22,6 +22,7 @@ def test_train_writes_checkpoints_metrics_and_tensorboard(trained):
     assert metrics["best_checkpoint"].startswith(str(out / "checkpoints" / "best-"))
     assert 0 < metrics["test/mae_mm"] < 50 and metrics["test/rmse_mm"] > 0
     assert (out / "metrics.json").is_file() and (out / "split.json").is_file()
+    assert metrics["threads"] == torch.get_num_threads()
     acc = EventAccumulator(str(out / "tensorboard"), size_guidance={"images": 0}).Reload()
     tags = acc.Tags()
     for tag in (

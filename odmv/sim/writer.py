@@ -12,6 +12,7 @@ import os
 import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
@@ -217,6 +218,20 @@ def render_and_write(s: SimSettings, index: int, spec: dict | None = None) -> st
 _SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
+@contextmanager
+def _environment(values: dict[str, str]):
+    """``values`` set in os.environ (where unset) only while the block runs: the spawned workers
+    read them at import, and a caller that goes on to train (odmv.reproduce, the demo) must not
+    inherit one thread for torch and every subprocess it starts."""
+    added = {k: v for k, v in values.items() if k not in os.environ}
+    os.environ.update(added)
+    try:
+        yield
+    finally:
+        for key in added:
+            os.environ.pop(key, None)
+
+
 def _worker_init():
     OpenEXR.set_global_thread_count(0)
 
@@ -304,10 +319,11 @@ def simulate(s: SimSettings, workers: int | None = None, progress: bool = True) 
                 render_and_write(s, i, specs[i])
                 bar.advance(task)
         else:
-            for key, value in _SINGLE_THREAD_ENV.items():
-                os.environ.setdefault(key, value)  # read by the spawned workers at import
             ctx = get_context("spawn")
-            with ProcessPoolExecutor(workers, ctx, initializer=_worker_init) as pool:
+            with (
+                _environment(_SINGLE_THREAD_ENV),
+                ProcessPoolExecutor(workers, ctx, initializer=_worker_init) as pool,
+            ):
                 for _ in pool.map(_worker, [(s, i, specs[i]) for i in todo]):
                     bar.advance(task)
     seconds = time.perf_counter() - t0
