@@ -47,6 +47,10 @@ RECORD = "reproduce.json"  # per row: the overrides that trained it and their ke
 # a row's record, with the predictions of the figures' scenes (checkpoints and logs stay behind)
 KEPT = ("metrics.json", RECORD, SCENES_CSV, ".hydra/config.yaml")
 QUIET = ["trainer.enable_progress_bar=false", "data.progress=false"]  # a run's log is a file
+RECORDERS = {
+    "lightning.pytorch.callbacks.ModelCheckpoint",
+    "lightning.pytorch.callbacks.LearningRateMonitor",
+}
 
 
 class ReproduceError(ValueError):
@@ -139,6 +143,9 @@ def _run_key(cfg: DictConfig) -> str:
     for term in OPTIONAL_TERMS:  # a loss weight the net has no output for is never read
         if term not in net.LOSS_TERMS:
             d["loss"].pop(term, None)
+    callbacks = d.get("callbacks") or {}
+    for name in [n for n, c in callbacks.items() if c.get("_target_") in RECORDERS]:
+        callbacks.pop(name)  # where checkpoints go and how the rate is logged shape no weight
     for setting in QUIET:  # how a run reports is not what it is
         group, _, key = setting.partition("=")[0].rpartition(".")
         d[group].pop(key, None)

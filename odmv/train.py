@@ -25,6 +25,7 @@ from odmv.cli import (
     run_app,
     task_overrides,
 )
+from odmv.ema import WeightEMA
 from odmv.module import FPPModule, write_json
 from odmv.simulate import CONF_DIR
 from odmv.sweep import append_row
@@ -57,6 +58,7 @@ def run_summary(cfg: DictConfig) -> dict:
         "stem_stride": cfg.get("stem_stride"),
         "depth_target": cfg.data.get("depth_target"),
         "precision": str(cfg.trainer.precision),
+        "ema": cfg.get("ema"),
     }
 
 
@@ -75,6 +77,8 @@ def build(cfg: DictConfig):
     )
     loggers = [hydra.utils.instantiate(c) for c in (cfg.get("logger") or {}).values()]
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()]
+    if cfg.get("ema") is not None:
+        callbacks.append(WeightEMA(cfg.ema))
     trainer = hydra.utils.instantiate(cfg.trainer, logger=loggers or False, callbacks=callbacks)
     return dm, module, trainer
 

@@ -17,7 +17,7 @@ from odmv.classical import classical_row
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import footprint_from_depth, subset_masks
 from odmv.module import FPPModule
-from odmv.reproduce import RECORD, plan, reproduce, sweep_overrides, trained_key
+from odmv.reproduce import RECORD, _run_key, plan, reproduce, sweep_overrides, trained_key
 from odmv.rig import VIEW_NAMES
 from odmv.simulate import CONF_DIR
 
@@ -182,6 +182,18 @@ def test_a_setting_added_as_null_keeps_finished_rows_valid(tmp_path):
     assert not job.stale() and job.current()
     changed = plan("mini", ["views"], [0], ["model.net.gate_init=neutral"], tmp_path)[0]
     assert changed.folder == job.folder and changed.stale() and not changed.current()
+
+
+def test_how_checkpoints_are_kept_is_no_part_of_a_rows_key(tmp_path):
+    """Rows saved with the checkpoint callbacks of before stay valid; the weight EMA, which
+    changes the tested weights, is part of the key."""
+    job = plan("mini", ["views"], [0], [], tmp_path)[0]
+    saved = _compose(["experiment=mini", *job.overrides])
+    OmegaConf.set_struct(saved, False)
+    del saved.callbacks["last"]  # the callbacks as saved before last.ckpt had its own
+    saved.callbacks.checkpoint.save_last = True
+    assert _run_key(saved) == job.key
+    assert plan("mini", ["views"], [0], ["ema=0.99"], tmp_path)[0].key != job.key
 
 
 def test_a_record_without_its_config_is_judged_by_its_recorded_key(tmp_path):

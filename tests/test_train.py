@@ -75,6 +75,38 @@ def test_resume_continues_from_the_saved_epoch(trained, tiny_dataset, tmp_path):
     assert after["lr_schedulers"][0]["last_epoch"] == before["lr_schedulers"][0]["last_epoch"] + 1
 
 
+def test_weight_ema_is_validated_checkpointed_and_tested(tiny_dataset, tmp_path):
+    overrides = tiny_overrides(tiny_dataset, tmp_path, "ema=0.5", "trainer.max_epochs=2")
+    metrics = train(compose_config("train", overrides))
+    best = torch.load(metrics["best_checkpoint"], weights_only=True)
+    raw, avg = best["current_model_state"], best["state_dict"]
+    assert raw.keys() == avg.keys()
+    assert any(not torch.equal(raw[k], avg[k]) for k in avg)  # the average is not the last step
+    # the test scored the average (the checkpoint's state_dict), as evaluation loads it
+    evaluate_cfg = [f"paths.output_dir={tmp_path / 'eval'}", "accelerator=cpu"]
+    em = evaluate(
+        compose_config("evaluate", [f"ckpt_path={metrics['best_checkpoint']}", *evaluate_cfg])
+    )
+    assert em["test/mae_mm"] == pytest.approx(metrics["test/mae_mm"], rel=1e-5)
+    swapped = tmp_path / "raw.ckpt"
+    torch.save({**best, "state_dict": raw}, swapped)
+    er = evaluate(compose_config("evaluate", [f"ckpt_path={swapped}", *evaluate_cfg]))
+    assert er["test/mae_mm"] != pytest.approx(metrics["test/mae_mm"], rel=1e-5)
+    # last.ckpt is the latest epoch although epoch 1 validated worse (Lightning 2.6's save_last
+    # writes it only at a new best); resuming restores both the raw weights and the average
+    last = tmp_path / "checkpoints" / "last.ckpt"
+    assert best["epoch"] == 0 and torch.load(last, weights_only=True)["global_step"] == 4
+    cont = tiny_overrides(
+        tiny_dataset, tmp_path, "ema=0.5", "trainer.max_epochs=3", f"ckpt_path={last}", "test=false"
+    )
+    train(compose_config("train", cont))
+    after = torch.load(last, weights_only=True)
+    assert after["global_step"] == 6 and after["callbacks"]
+    assert any(
+        not torch.equal(after["state_dict"][k], after["current_model_state"][k]) for k in avg
+    )
+
+
 def test_evaluate_writes_metrics_and_figures(trained, tmp_path):
     out, metrics = trained
     cfg = compose_config(
