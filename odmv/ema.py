@@ -22,7 +22,6 @@ class WeightEMA(EMAWeightAveraging):
         if not 0.0 < decay < 1.0:
             raise ValueError(f"ema: the decay must lie in (0, 1), got {decay}")
         super().__init__(decay=decay)
-        self.decay = decay
 
     def on_load_checkpoint(self, trainer, pl_module, checkpoint) -> None:
         if trainer.state.fn == TrainerFn.FITTING:
