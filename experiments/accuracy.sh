@@ -228,4 +228,10 @@ round24() {
   SEEDS=2 run s3 views=3
   round22
 }
-"${@:-round24}"
+round25() {
+  # Schedule length at equal wall time (issue lever 6): ODMV-Net S = 4 trains 40 epochs in
+  # about 13 min, UHRNet in about 23; at 70 epochs (one cosine cycle) ODMV-Net gets UHRNet's
+  # time. Every net underfits at 1600 steps (round 11), so more steps is the first thing to try.
+  run s4-e70 trainer.max_epochs=70 scheduler.T_0=70
+}
+"${@:-round25}"
