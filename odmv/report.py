@@ -177,6 +177,13 @@ def _subset_cell(c: Cell, key: str) -> str:
     return _fmt(*c.stat(key)) + (f" ({n} of {len(c.runs)} seeds)" if n < len(c.runs) else "")
 
 
+def _threads_cell(c: Cell) -> str:
+    """Each seed's torch thread count, in seed order ("?" where the record predates it): two
+    counts round differently, which moves a run as far as a change of seed does."""
+    runs = sorted(c.runs, key=lambda r: r.metrics.get("seed", 0))
+    return ", ".join(str(r.metrics.get("threads", "?")) for r in runs) or "–"
+
+
 def _paper(row: Row, i: int) -> str:
     return f"{row.paper[i]:.4f}" if row.paper else "–"
 
@@ -195,7 +202,7 @@ def table_markdown(name: str, cells: list[Cell]) -> list[str]:
         *[f"MAE {name} (mm)" for name in FIRST_VIEW.values()],
     ]
     head += ["coverage (%)"] if classical else []
-    head += ["parameters", "train time (min)", "paper MAE", "paper MSE", "paper RMSE"]
+    head += ["parameters", "train time (min)", "threads", "paper MAE", "paper MSE", "paper RMSE"]
     lines = [f"### {TITLES[name]}", "", "| " + " | ".join(head) + " |"]
     lines.append("|" + "|".join(["---"] + ["---:"] * (len(head) - 1)) + "|")
     for c in cells:
@@ -210,6 +217,7 @@ def table_markdown(name: str, cells: list[Cell]) -> list[str]:
         minutes = c.stat("train_seconds")[0] / 60
         cols.append(f"{int(params):,}" if np.isfinite(params) and params > 0 else "–")
         cols.append(f"{minutes:.1f}" if np.isfinite(minutes) and minutes > 0 else "–")
+        cols.append(_threads_cell(c))
         cols += [_paper(c.row, i) for i in range(3)]
         lines.append("| " + " | ".join(cols) + " |")
     return lines + [""]
@@ -595,7 +603,9 @@ def write_report(
         "pixels. `first-unlit`: pixels the first projector (right, the one view of every S = 1 "
         "row) leaves unlit and another lights, where only more views add fringes; most lie "
         "outside its footprint, a band of the field. `first-shadowed`: those inside its "
-        "footprint, hidden by occlusion. `–`: the row's records predate those two. Paper "
+        "footprint, hidden by occlusion. `–`: the row's records predate those two. threads: "
+        "each seed's torch thread count in seed order (`?`: not recorded); runs of one "
+        "configuration with other thread counts differ as much as seeds do. Paper "
         "columns: the paper's published numbers, for its 480 px protocol; the paper gives no "
         "numbers for S = 1..3. `missing`: no finished run for that row.",
         "",

@@ -2,7 +2,7 @@
 
 from pathlib import Path
 
-from odmv.report import Run, _subset_cell, build_tables, claims_markdown
+from odmv.report import Run, _subset_cell, build_tables, claims_markdown, table_markdown
 
 SHADOWED = "S=4 (all) gains more over S=1 (right) on shadowed pixels"
 
@@ -66,3 +66,15 @@ def test_first_unlit_claim_pairs_only_the_seeds_whose_records_have_the_metric():
         if r.n_views == 4 and "test/mae_mm_first_unlit" in r.metrics:
             r.metrics["test/mae_mm_first_unlit"] *= 2
     assert _claims(runs)[first] == "does not hold"
+
+
+def test_tables_give_each_seeds_thread_count_in_seed_order():
+    runs = [_run("odmvnet", 4, 0.2, 0.5, k, "multitask") for k in (1, 0, 2)]
+    runs[0].metrics["threads"] = 1  # seed 1
+    runs[1].metrics["threads"] = 2  # seed 0; seed 2's record predates the field
+    lines = table_markdown("views", build_tables(runs)["views"])
+    head = lines[2].strip("| ").split(" | ")
+    s4 = next(line for line in lines if line.startswith("| S=4")).strip("| ").split(" | ")
+    s1 = next(line for line in lines if line.startswith("| S=1")).strip("| ").split(" | ")
+    assert s4[head.index("threads")] == "2, 1, ?"
+    assert s1[head.index("threads")] == "–"  # no run
