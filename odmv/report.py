@@ -123,6 +123,10 @@ class Cell:
     def values(self, key: str) -> np.ndarray:
         return np.array([float(r.metrics.get(key, np.nan)) for r in self.runs], float)
 
+    def by_seed(self) -> list[Run]:
+        """The runs in seed order."""
+        return sorted(self.runs, key=lambda r: r.metrics.get("seed", 0))
+
     def stat(self, key: str) -> tuple[float, float]:
         v = self.values(key)
         v = v[np.isfinite(v)]
@@ -180,8 +184,7 @@ def _subset_cell(c: Cell, key: str) -> str:
 def _threads_cell(c: Cell) -> str:
     """Each seed's torch thread count, in seed order ("?" where the record predates it): two
     counts round differently, which moves a run as far as a change of seed does."""
-    runs = sorted(c.runs, key=lambda r: r.metrics.get("seed", 0))
-    return ", ".join(str(r.metrics.get("threads", "?")) for r in runs) or "–"
+    return ", ".join(str(r.metrics.get("threads", "?")) for r in c.by_seed()) or "–"
 
 
 def _paper(row: Row, i: int) -> str:
@@ -502,7 +505,7 @@ def comparison_figures(
     and every run of one test split picks the same ones)."""
     preds = []
     for c in cells:
-        runs = sorted(c.runs, key=lambda r: r.metrics.get("seed", 0))
+        runs = c.by_seed()
         p = next((p for p in map(_predictions, runs) if p), None)
         if p:
             preds.append((c.row.label, p))
