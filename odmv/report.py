@@ -181,10 +181,13 @@ def _subset_cell(c: Cell, key: str) -> str:
     return _fmt(*c.stat(key)) + (f" ({n} of {len(c.runs)} seeds)" if n < len(c.runs) else "")
 
 
-def _threads_cell(c: Cell) -> str:
-    """Each seed's torch thread count, in seed order ("?" where the record predates it): two
-    counts round differently, which moves a run as far as a change of seed does."""
-    return ", ".join(str(r.metrics.get("threads", "?")) for r in c.by_seed()) or "–"
+def _per_seed_cell(c: Cell, key: str) -> str:
+    """One field of each seed's record, in seed order ("?" where the record predates it).
+    Used for what makes two runs of one row differ although the table gives them one mean:
+    the torch thread count (two counts round differently, which moves a run as far as a
+    change of seed does) and the epochs trained (a row partly retrained after the preset's
+    schedule changed)."""
+    return ", ".join(str(r.metrics.get(key, "?")) for r in c.by_seed()) or "–"
 
 
 def _paper(row: Row, i: int) -> str:
@@ -205,7 +208,8 @@ def table_markdown(name: str, cells: list[Cell]) -> list[str]:
         *[f"MAE {name} (mm)" for name in FIRST_VIEW.values()],
     ]
     head += ["coverage (%)"] if classical else []
-    head += ["parameters", "train time (min)", "threads", "paper MAE", "paper MSE", "paper RMSE"]
+    head += ["parameters", "epochs", "train time (min)", "threads"]
+    head += ["paper MAE", "paper MSE", "paper RMSE"]
     lines = [f"### {TITLES[name]}", "", "| " + " | ".join(head) + " |"]
     lines.append("|" + "|".join(["---"] + ["---:"] * (len(head) - 1)) + "|")
     for c in cells:
@@ -219,8 +223,9 @@ def table_markdown(name: str, cells: list[Cell]) -> list[str]:
         params = c.stat("parameters")[0]
         minutes = c.stat("train_seconds")[0] / 60
         cols.append(f"{int(params):,}" if np.isfinite(params) and params > 0 else "–")
+        cols.append(_per_seed_cell(c, "epochs"))
         cols.append(f"{minutes:.1f}" if np.isfinite(minutes) and minutes > 0 else "–")
-        cols.append(_threads_cell(c))
+        cols.append(_per_seed_cell(c, "threads"))
         cols += [_paper(c.row, i) for i in range(3)]
         lines.append("| " + " | ".join(cols) + " |")
     return lines + [""]
@@ -606,9 +611,10 @@ def write_report(
         "pixels. `first-unlit`: pixels the first projector (right, the one view of every S = 1 "
         "row) leaves unlit and another lights, where only more views add fringes; most lie "
         "outside its footprint, a band of the field. `first-shadowed`: those inside its "
-        "footprint, hidden by occlusion. `–`: the row's records predate those two. threads: "
-        "each seed's torch thread count in seed order (`?`: not recorded); runs of one "
-        "configuration with other thread counts differ as much as seeds do. Paper "
+        "footprint, hidden by occlusion. `–`: the row's records predate those two. epochs and "
+        "threads: each seed's epochs trained and torch thread count, in seed order (`?`: not "
+        "recorded); runs of one configuration with other thread counts differ as much as "
+        "seeds do. Paper "
         "columns: the paper's published numbers, for its 480 px protocol; the paper gives no "
         "numbers for S = 1..3. `missing`: no finished run for that row.",
         "",

@@ -68,13 +68,16 @@ def test_first_unlit_claim_pairs_only_the_seeds_whose_records_have_the_metric():
     assert _claims(runs)[first] == "does not hold"
 
 
-def test_tables_give_each_seeds_thread_count_in_seed_order():
+def test_tables_give_each_seeds_thread_count_and_epochs_in_seed_order():
     runs = [_run("odmvnet", 4, 0.2, 0.5, k, "multitask") for k in (1, 0, 2)]
     runs[0].metrics["threads"] = 1  # seed 1
     runs[1].metrics["threads"] = 2  # seed 0; seed 2's record predates the field
+    for r, epochs in zip(runs, (40, 70, 70), strict=True):
+        r.metrics["epochs"] = epochs
     lines = table_markdown("views", build_tables(runs)["views"])
     head = lines[2].strip("| ").split(" | ")
     s4 = next(line for line in lines if line.startswith("| S=4")).strip("| ").split(" | ")
     s1 = next(line for line in lines if line.startswith("| S=1")).strip("| ").split(" | ")
     assert s4[head.index("threads")] == "2, 1, ?"
-    assert s1[head.index("threads")] == "–"  # no run
+    assert s4[head.index("epochs")] == "70, 40, 70"  # a row half retrained on a new schedule
+    assert s1[head.index("threads")] == s1[head.index("epochs")] == "–"  # no run
