@@ -242,4 +242,11 @@ round26() {
   # (about 48 min a run here).
   run uhrnet-s1-e70 contender=uhrnet_s1 trainer.max_epochs=70 scheduler.T_0=70
 }
-"${@:-round26}"
+round27() {
+  # Width at equal parameters and equal epochs: at width 24 (full-resolution stage as wide)
+  # ODMV-Net has UHRNet's 30 M parameters and about its time per step (round 6), so Table II
+  # compares the two at equal size, equal epochs and about equal wall time. The baselines
+  # already have their published widths; the paper's ODMV-Net (width 46) has 114 M.
+  run s4-w24 widths.odmvnet=24 full_width=24
+}
+"${@:-round27}"
