@@ -247,6 +247,7 @@ round27() {
   # ODMV-Net has UHRNet's 30 M parameters and about its time per step (round 6), so Table II
   # compares the two at equal size, equal epochs and about equal wall time. The baselines
   # already have their published widths; the paper's ODMV-Net (width 46) has 114 M.
-  run s4-w24 widths.odmvnet=24 full_width=24
+  # (40 epochs: the preset's schedule when it ran)
+  run s4-w24 widths.odmvnet=24 full_width=24 trainer.max_epochs=40 scheduler.T_0=40
 }
 "${@:-round27}"

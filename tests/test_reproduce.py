@@ -117,6 +117,14 @@ def test_sweeps_expand_to_the_tables_rows():
     assert paper.data.simulate.scenes == 252 and paper.model.net.base_width == 46
 
 
+def test_mini_trains_every_net_for_the_same_epochs_in_one_cosine_cycle():
+    # Table II compares nets at equal epochs (the paper's protocol); 70 epochs for all of them
+    # (accuracy.md rounds 25-26), the cosine schedule ending at the last one
+    for contender in ("odmvnet_s4", "unet_s1", "hnet_s1", "uhrnet_s1", "mtlnet_s1", "unet_s4"):
+        cfg = _compose(["experiment=mini", f"contender={contender}"])
+        assert (cfg.trainer.max_epochs, cfg.scheduler.T_0) == (70, 70), contender
+
+
 def test_paper_keeps_the_recipe_and_the_other_presets_take_the_improvements():
     def switches(cfg):
         net = cfg.model.net
