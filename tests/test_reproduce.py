@@ -5,6 +5,7 @@ a resumed reproduction that trains nothing."""
 import csv
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -120,7 +121,9 @@ def test_sweeps_expand_to_the_tables_rows():
 def test_mini_trains_every_net_for_the_same_epochs_in_one_cosine_cycle():
     # Table II compares nets at equal epochs (the paper's protocol); 70 epochs for all of them
     # (accuracy.md rounds 25-26), the cosine schedule ending at the last one
-    for contender in ("odmvnet_s4", "unet_s1", "hnet_s1", "uhrnet_s1", "mtlnet_s1", "unet_s4"):
+    contenders = sorted(p.stem for p in Path(CONF_DIR, "contender").glob("*.yaml"))
+    assert len(contenders) == 6  # the Table II rows that train
+    for contender in contenders:
         cfg = _compose(["experiment=mini", f"contender={contender}"])
         assert (cfg.trainer.max_epochs, cfg.scheduler.T_0) == (70, 70), contender
 
