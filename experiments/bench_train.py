@@ -1,5 +1,6 @@
 """Training-step time and peak memory of a preset's net: forward, composite loss, backward,
-gradient clipping and an Adam step on a synthetic batch of the preset's shapes.
+gradient clipping and an Adam step (the preset's optimizer settings) on a synthetic batch of
+the preset's shapes.
 
     python experiments/bench_train.py --preset paper --model odmvnet            # 480 px, batch 2
     python experiments/bench_train.py --preset paper --device cuda --precision bf16-mixed \\
@@ -18,6 +19,7 @@ import statistics
 import time
 
 import torch
+from omegaconf import OmegaConf
 
 from odmv.bench import (
     PRESETS,
@@ -76,7 +78,9 @@ def main() -> None:
                 p.data = p.data.contiguous(memory_format=fmt)
     net = torch.compile(module.net, mode=args.compile_mode) if args.compile else module.net
     weights = LossWeights(**cfg.loss)
-    opt = torch.optim.Adam(module.parameters(), lr=1e-4)
+    opt = torch.optim.Adam(
+        module.parameters(), **OmegaConf.to_container(cfg.optimizer, resolve=True)
+    )
     batch = synthetic_batch(cfg, batch_size, device)
     dtype = {"bf16-mixed": torch.bfloat16, "16-mixed": torch.float16}.get(args.precision)
     scaler = torch.amp.GradScaler(device.type, enabled=args.precision == "16-mixed")

@@ -48,9 +48,12 @@ def depth_loss(pred: torch.Tensor, target: torch.Tensor, w: LossWeights) -> dict
         target = torch.where(valid, target, pred.detach())
     side = min(pred.shape[-2:])
     window = min(w.ssim_window, side if side % 2 else side - 1)  # odd, no larger than the map
-    l_ssim = 1 - ssim(pred, target, window, max_val=w.depth_range).mean()
     l1 = (pred - target).abs().sum() / valid.sum().clamp_min(1)
-    return {"loss": w.alpha * l_ssim + (1 - w.alpha) * l1, "ssim": l_ssim, "l1": l1}
+    # at alpha 0 (pure L1) SSIM is only reported: no graph, no backward through its filters
+    with torch.set_grad_enabled(torch.is_grad_enabled() and w.alpha > 0):
+        l_ssim = 1 - ssim(pred, target, window, max_val=w.depth_range).mean()
+    loss = w.alpha * l_ssim + (1 - w.alpha) * l1 if w.alpha else l1
+    return {"loss": loss, "ssim": l_ssim, "l1": l1}
 
 
 def composite_loss(out: dict, batch: dict, w: LossWeights) -> dict[str, torch.Tensor]:

@@ -270,3 +270,49 @@ def test_neutral_gate_init_starts_every_gate_uniform_and_the_gates_still_learn()
     assert all(m.std() > 0 for m in masks)
     with pytest.raises(ValueError, match="gate_init"):
         _tiny(gate_init="zeros")
+
+
+@pytest.mark.parametrize(
+    "layer, size",
+    [
+        # an ASPP branch at a 2 x 2 bottleneck: only the centre of space meets the input
+        (dict(cin=8, cout=6, kernel_size=3, padding=(1, 6, 6), dilation=(1, 6, 6)), (4, 2, 2)),
+        # a one-view volume: the view kernel's outer taps meet only the zero padding
+        (dict(cin=8, cout=6, kernel_size=3, padding=1), (1, 5, 5)),
+        (dict(cin=2, cout=1, kernel_size=(3, 7, 7), padding=(1, 3, 3)), (1, 2, 3)),
+        # UHRNet's dilation-5 branch at its 4 x 4 bottleneck (2D)
+        (dict(cin=8, cout=6, kernel_size=3, padding=5, dilation=5), (4, 4)),
+    ],
+)
+def test_skipping_taps_that_meet_only_padding_keeps_values_and_gradients(layer, size):
+    from odmv.models.blocks import Conv2d, Conv3d, reachable_taps
+
+    dims = len(size)
+    ours = (Conv3d if dims == 3 else Conv2d)(layer.pop("cin"), layer.pop("cout"), **layer)
+    plain = (torch.nn.Conv3d if dims == 3 else torch.nn.Conv2d)(
+        ours.in_channels, ours.out_channels, **layer
+    )
+    plain.load_state_dict(ours.state_dict())
+    trimmed, _ = reachable_taps(ours.weight, size, ours.padding, ours.dilation, ours.stride)
+    assert trimmed.shape[2:].numel() < ours.weight.shape[2:].numel()  # work is skipped
+    x = torch.rand(3, ours.in_channels, *size)
+    results = []
+    for conv in (plain, ours):
+        out = conv(x)
+        out.square().sum().backward()
+        results.append((out.detach(), conv.weight.grad, conv.bias.grad))
+    for a, b in zip(*results, strict=True):
+        torch.testing.assert_close(b, a, atol=1e-5, rtol=1e-5)
+    # a tap that never meets the input gets no gradient, as in the plain convolution
+    assert results[1][1].shape == ours.weight.shape
+
+
+def test_stride_2_view_encoder_gives_channels_last_volumes():
+    # per-view 2D features in channels-last are a channels-last volume once stacked, so the
+    # 3D layers they reach never convert them (docs/performance.md); three channels a view, as
+    # with the reference phase (one channel leaves a layer's layout ambiguous)
+    x = torch.rand(2, 4 * 3, 32, 32)
+    for fmt in ("channels_last", "contiguous"):
+        vol, full = _tiny(stem_stride=2, view_channels=3, memory_format=fmt).stem(x)
+        for v in (vol, full):
+            assert v.is_contiguous(memory_format=torch.channels_last_3d) == (fmt != "contiguous")

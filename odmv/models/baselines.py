@@ -28,7 +28,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from odmv.models.blocks import Float32Conv2d, Float32ConvTranspose2d, set_norm
+from odmv.models.blocks import Conv2d, Float32Conv2d, Float32ConvTranspose2d, set_norm
 
 
 def _check(x: torch.Tensor, levels: int, name: str) -> None:
@@ -155,7 +155,7 @@ class _MultiLevelConv(nn.Module):
 
         def cbr(a, b, dilation=1, act=True):
             layers = [
-                nn.Conv2d(a, b, 3, padding=dilation, dilation=dilation, bias=False),
+                Conv2d(a, b, 3, padding=dilation, dilation=dilation, bias=False),
                 nn.BatchNorm2d(b),
             ]
             return layers + ([nn.LeakyReLU(inplace=True)] if act else [])

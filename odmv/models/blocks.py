@@ -12,11 +12,49 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 
+def reachable_taps(
+    weight: torch.Tensor, size: tuple[int, ...], padding, dilation, stride
+) -> tuple[torch.Tensor, tuple[int, ...]]:
+    """The kernel taps of a zero-padded, same-size convolution that can meet the input, and
+    the padding that keeps the output size: along a stride-1 axis of ``size`` points, a tap
+    ``j`` steps from the centre at dilation ``d`` lies in the padding for every output point
+    once ``j * d >= size``. Dropping such taps changes no value and saves their work: the
+    ASPP branches at a 2 x 2 bottleneck (dilations 2-6) and every view kernel of a one-view
+    volume reduce to their centre."""
+    pads = []
+    for axis, (n, p, d, s) in enumerate(zip(size, padding, dilation, stride, strict=True)):
+        k = weight.shape[2 + axis]
+        reach = min(k // 2, (n - 1) // d)
+        if s == 1 and k % 2 and p == d * (k // 2) and reach < k // 2:
+            weight = weight.narrow(2 + axis, k // 2 - reach, 2 * reach + 1)
+            p = d * reach
+        pads.append(p)
+    return weight, tuple(pads)
+
+
+class _ReachableTaps:
+    """A zero-padded convolution that skips the taps which only ever meet padding at the
+    input's size (:func:`reachable_taps`): the same values, the same parameters, less work."""
+
+    def _conv_forward(self, x, weight, bias, padding=None):
+        padding = self.padding if padding is None else padding
+        weight, padding = reachable_taps(weight, x.shape[2:], padding, self.dilation, self.stride)
+        return self._conv(x, weight, bias, self.stride, padding, self.dilation, self.groups)
+
+
+class Conv2d(_ReachableTaps, nn.Conv2d):
+    _conv = staticmethod(F.conv2d)
+
+
+class Conv3d(_ReachableTaps, nn.Conv3d):
+    _conv = staticmethod(F.conv3d)
+
+
 def conv_bn_act(
     cin: int, cout: int, kernel=3, stride=1, dilation=1, dims: int = 3, act: bool = True
 ) -> nn.Sequential:
     """Convolution (same padding), batch norm and ReLU, in 2D or 3D."""
-    Conv, Norm = (nn.Conv3d, nn.BatchNorm3d) if dims == 3 else (nn.Conv2d, nn.BatchNorm2d)
+    Conv, Norm = (Conv3d, nn.BatchNorm3d) if dims == 3 else (nn.Conv2d, nn.BatchNorm2d)
     k = (kernel,) * dims if isinstance(kernel, int) else tuple(kernel)
     d = (dilation,) * dims if isinstance(dilation, int) else tuple(dilation)
     pad = tuple(dd * (kk // 2) for kk, dd in zip(k, d, strict=True))
@@ -53,7 +91,7 @@ def set_norm(net: nn.Module, norm: str) -> nn.Module:
 VIEW_PADDINGS = ("zeros", "circular")
 
 
-class ViewCircularConv3d(nn.Conv3d):
+class ViewCircularConv3d(Conv3d):
     """A Conv3d whose view axis (the first of D x H x W) wraps around: the four views right,
     down, left, up form a ring in which each view's neighbours are the two beside it, which
     zero padding would cut between up and right. Space keeps zero padding."""
@@ -61,8 +99,7 @@ class ViewCircularConv3d(nn.Conv3d):
     def forward(self, x):
         p = self.padding[0]
         x = F.pad(x, (0, 0, 0, 0, p, p), mode="circular")
-        pad = (0, *self.padding[1:])
-        return F.conv3d(x, self.weight, self.bias, self.stride, pad, self.dilation, self.groups)
+        return self._conv_forward(x, self.weight, self.bias, (0, *self.padding[1:]))
 
 
 def set_view_padding(net: nn.Module, mode: str) -> nn.Module:
@@ -74,7 +111,7 @@ def set_view_padding(net: nn.Module, mode: str) -> nn.Module:
     if mode == "zeros":
         return net
     for name, child in net.named_children():
-        if type(child) is nn.Conv3d and child.padding[0] > 0:
+        if type(child) in (nn.Conv3d, Conv3d) and child.padding[0] > 0:
             conv = ViewCircularConv3d(
                 child.in_channels,
                 child.out_channels,
@@ -95,19 +132,25 @@ def set_view_padding(net: nn.Module, mode: str) -> nn.Module:
 MEMORY_FORMATS = ("contiguous", "channels_last")
 
 
-def set_memory_format(net: nn.Module, fmt: str) -> nn.Module:
+def set_memory_format(net: nn.Module, fmt: str, stems: tuple[nn.Module, ...] = ()) -> nn.Module:
     """``"channels_last"`` stores every 3D convolution's weight channels-last (channels
     innermost); the convolution backend then runs those convolutions, and the activations they
     pass on, in that layout. The values are the same; on a 2-core CPU (oneDNN) the ODMV-Net
     training step is 20-26 % faster, most of it in the backward of the wide, few-channel layers
-    (docs/performance.md); on a GPU it is unmeasured. 2D layers keep their layout: no clear
-    gain was measured for them."""
+    (docs/performance.md); on a GPU it is unmeasured. The 2D convolutions inside ``stems`` (the
+    per-view layers whose B*S outputs are stacked into a volume) go channels-last too: stacked,
+    their outputs are then a channels-last volume without a copy, where a contiguous one makes
+    every 3D layer it reaches convert it first. Other 2D layers keep their layout: no clear gain
+    was measured for them."""
     if fmt not in MEMORY_FORMATS:
         raise ValueError(f"memory_format {fmt!r} unknown; choose from {list(MEMORY_FORMATS)}")
     if fmt == "channels_last":
         for m in net.modules():
             if isinstance(m, nn.Conv3d | nn.ConvTranspose3d):
                 m.weight.data = m.weight.data.contiguous(memory_format=torch.channels_last_3d)
+        for m in (m for stem in stems for m in stem.modules()):
+            if isinstance(m, nn.Conv2d):
+                m.weight.data = m.weight.data.contiguous(memory_format=torch.channels_last)
     return net
 
 
@@ -198,11 +241,11 @@ class OcclusionDetector(nn.Module):
         super().__init__()
         hidden = hidden or max(8, ch // 4)
         self.net = nn.Sequential(
-            nn.Conv3d(ch, ch, 3, padding=1, groups=ch, bias=False),
+            Conv3d(ch, ch, 3, padding=1, groups=ch, bias=False),
             nn.Conv3d(ch, hidden, 1, bias=False),
             nn.BatchNorm3d(hidden),
             nn.ReLU(inplace=True),
-            nn.Conv3d(hidden, hidden, 3, padding=1, groups=hidden, bias=False),
+            Conv3d(hidden, hidden, 3, padding=1, groups=hidden, bias=False),
             nn.Conv3d(hidden, 1, 1),
         )
 
@@ -240,7 +283,7 @@ class OcclusionAwareFusion(nn.Module):
         self.mlp = nn.Sequential(
             nn.Linear(ch, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, ch)
         )
-        self.spatial = nn.Conv3d(2, 1, (3, 7, 7), padding=(1, 3, 3))
+        self.spatial = Conv3d(2, 1, (3, 7, 7), padding=(1, 3, 3))
 
     def logit_layers(self) -> list[nn.Module]:
         return [self.mlp[-1], self.spatial]

@@ -246,7 +246,7 @@ class ODMVNet(nn.Module):
         set_norm(self, norm)
         set_gate_init(self, gate_init)
         set_view_padding(self, view_padding)
-        set_memory_format(self, memory_format)
+        set_memory_format(self, memory_format, stems=(self.stem,))
 
     def _run(self, module, *args):
         if self.checkpointing and self.training and torch.is_grad_enabled():
