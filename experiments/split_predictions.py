@@ -13,7 +13,6 @@ exist (it is never rendered here).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 from pathlib import Path
 
@@ -23,20 +22,8 @@ import torch
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.evaluate import read_only
+from odmv.heldout import best_checkpoint
 from odmv.module import load_module, net_input
-
-
-def best_checkpoint(run: Path) -> tuple[Path, dict]:
-    """A finished run's best checkpoint (found beside it where the run folder was moved) and
-    its metrics.json."""
-    path = run / "metrics.json"
-    if not path.is_file():
-        raise SystemExit(f"error: {run}: no metrics.json (not a finished run)")
-    metrics = json.loads(path.read_text())
-    ckpt = Path(metrics["best_checkpoint"])
-    if not ckpt.is_file():
-        ckpt = run / "checkpoints" / ckpt.name  # the run folder was moved
-    return ckpt, metrics
 
 
 def run_data(run: Path, stage: str, views: list[str] | None = None):

@@ -107,6 +107,17 @@ def task_overrides() -> list[str]:
     return list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
 
 
+def set_threads(threads: int | None) -> None:
+    """Fix torch's intra-op thread count (None: torch's default). Floating-point sums split by
+    thread count, so one seed trained on two counts gives two runs; a protocol pins it."""
+    if threads is not None:
+        if int(threads) < 1:
+            raise ValueError(f"threads: {threads}; a positive thread count, or null")
+        import torch
+
+        torch.set_num_threads(int(threads))
+
+
 def rank_zero_print(text: str) -> None:
     """Print once, from the first process of a multi-process (DDP) run."""
     if rank_zero_only.rank == 0:

@@ -20,7 +20,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 import odmv.config  # noqa: F401  (registers the config resolvers)
-from odmv.cli import run_app, task_overrides
+from odmv.cli import run_app, set_threads, task_overrides
 from odmv.data.dataset import DataError
 from odmv.io.manifest import MANIFEST
 from odmv.metrics import DepthErrors
@@ -168,6 +168,7 @@ def evaluate(cfg: DictConfig, overrides: list[str] | None = None) -> dict:
     """Test metrics and figures for ``cfg.ckpt_path``; returns the metrics dict.
     ``overrides``: the command line's (default: Hydra's), which pick the data settings
     that differ from the checkpoint's (:func:`data_settings`)."""
+    set_threads(cfg.get("threads"))
     out_dir = Path(cfg.paths.output_dir)
     module = load_module(cfg.ckpt_path)
     overrides = task_overrides() if overrides is None else overrides

@@ -50,6 +50,7 @@ class Row:
     views: int
     ablation: str | None = None
     paper: tuple[float, float, float] | None = None  # MAE, MSE, RMSE as the paper prints them
+    width: int | None = None  # a row of one base width; None: the runs no such row claims
 
 
 _ABLATION = (
@@ -79,6 +80,14 @@ TABLES: dict[str, list[Row]] = {
         Row("table2", "UNet, 4 views as channels (S=4)", "unet", 4),
         Row("table2", "Classical phase shifting (4 projectors)", "classical", 4),
         Row("table2", "ODMV-Net (S=4)", "odmvnet", 4, "multitask", PAPER_ODMV),
+        Row(
+            "table2",
+            "ODMV-Net at UHRNet's size (S=4, width 24)",
+            "odmvnet",
+            4,
+            "multitask",
+            width=24,
+        ),
     ],
 }
 TITLES = {
@@ -107,8 +116,14 @@ class Run:
     def n_views(self) -> int:
         return len(self.metrics.get("views") or [])
 
+    @property
+    def width(self) -> int | None:
+        return self.metrics.get("width")
+
     def matches(self, row: Row) -> bool:
         if (self.model, self.n_views) != (row.model, row.views):
+            return False
+        if row.width is not None and self.width != row.width:
             return False
         return row.ablation is None or self.metrics.get("ablation") == row.ablation
 
@@ -157,8 +172,15 @@ def find_runs(paths: list[Path]) -> tuple[list[Run], list[Path]]:
 
 
 def build_tables(runs: list[Run]) -> dict[str, list[Cell]]:
+    """Each table's rows with their runs. A run that a row of its own width claims (ODMV-Net
+    at width 24) belongs to that row only; the other rows take the protocol's width."""
+    widths = {row.width for rows in TABLES.values() for row in rows} - {None}
+
+    def belongs(run: Run, row: Row) -> bool:
+        return run.matches(row) and (row.width is not None or run.width not in widths)
+
     return {
-        name: [Cell(row, [r for r in runs if r.matches(row)]) for row in rows]
+        name: [Cell(row, [r for r in runs if belongs(r, row)]) for row in rows]
         for name, rows in TABLES.items()
     }
 

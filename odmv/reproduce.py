@@ -37,6 +37,7 @@ from omegaconf import DictConfig, OmegaConf
 import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.classical import classical_row
 from odmv.cli import run_app
+from odmv.heldout import HELDOUT, HeldoutError, score_heldout
 from odmv.losses import OPTIONAL_TERMS
 from odmv.module import PREDICTIONS, SCENES_CSV
 from odmv.report import FIGURE_SCENES, Run, pick_scenes, write_report
@@ -45,7 +46,7 @@ from odmv.simulate import CONF_DIR
 CLASSICAL_DIR = "classical"
 RECORD = "reproduce.json"  # per row: the overrides that trained it and their key
 # a row's record, with the predictions of the figures' scenes (checkpoints and logs stay behind)
-KEPT = ("metrics.json", RECORD, SCENES_CSV, ".hydra/config.yaml")
+KEPT = ("metrics.json", HELDOUT, RECORD, SCENES_CSV, ".hydra/config.yaml")
 QUIET = ["trainer.enable_progress_bar=false", "data.progress=false"]  # a run's log is a file
 RECORDERS = {
     "lightning.pytorch.callbacks.ModelCheckpoint",
@@ -133,7 +134,17 @@ def _run_key(cfg: DictConfig) -> str:
     cfg = cfg.copy()
     cfg.paths.output_dir = "RUN"  # a run's own folder is not part of what it is
     d = OmegaConf.to_container(cfg, resolve=True)
-    for k in ("paths", "task_name", "test", "ckpt_path", "resume", "log_images", "seeds", "logger"):
+    for k in (
+        "paths",
+        "task_name",
+        "test",
+        "ckpt_path",
+        "resume",
+        "log_images",
+        "seeds",
+        "contenders",
+        "logger",
+    ):
         d.pop(k, None)
     # this net's entry is in model.net / loss / optimizer; the other nets' are not this run's
     # (full_width reaches ODMV-Net's model.net only, so a baseline's row ignores it too)
@@ -186,9 +197,18 @@ def plan(
                 name = f"{cfg.model.name}-s{views}"
                 if cfg.model.name == "odmvnet":
                     name += f"-{cfg.ablation}"
+                width = cfg.model.net.get("base_width")
+                if width is not None and width != cfg.widths.get(cfg.model.name):
+                    name += f"-w{width}"  # a row at another width than the protocol's
                 key = _run_key(cfg)
                 name += f"-seed{seed}"
-                jobs.setdefault(key, Job(ov, seed, runs_dir / name, key, records / name))
+                job = jobs.setdefault(key, Job(ov, seed, runs_dir / name, key, records / name))
+                taken = next((j for j in jobs.values() if j.folder.name == name), job)
+                if taken is not job:
+                    raise ReproduceError(
+                        f"{name}: two rows would share this folder ({' '.join(taken.overrides)}"
+                        f" and {' '.join(ov)}); give one of them its own setting"
+                    )
     return list(jobs.values())
 
 
@@ -232,8 +252,9 @@ def keep(folder: Path, record: Path) -> bool:
     if not finished(folder):
         return False
     metrics = (folder / "metrics.json").read_text()
-    old = record / "metrics.json"
-    if old.is_file() and old.read_text() == metrics and trained_key(record) == trained_key(folder):
+    if trained_key(record) == trained_key(folder) and all(
+        _text(record / name) == _text(folder / name) for name in ("metrics.json", HELDOUT)
+    ):
         return False
     tmp = record.with_name(f".{record.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -258,6 +279,22 @@ def keep(folder: Path, record: Path) -> bool:
     return True
 
 
+def _text(path: Path) -> str | None:
+    return path.read_text() if path.is_file() else None
+
+
+def score(job: Job, threads: int | None, scenes: int) -> None:
+    """Score a finished row on the held-out set, once, while its checkpoint is on disk."""
+    if (job.folder / HELDOUT).is_file():
+        return
+    held = score_heldout(job.folder, threads, scenes)
+    print(
+        f"    held-out MAE {held['test/mae_mm']:.4f} mm "
+        f"(shadowed {held['test/mae_mm_shadowed']:.4f} mm)",
+        flush=True,
+    )
+
+
 def reproduce(cfg: DictConfig) -> Path:
     """Run (or continue) the reproduction; returns the report folder."""
     protocol, extra = cfg.protocol, list(cfg.overrides or [])
@@ -267,7 +304,13 @@ def reproduce(cfg: DictConfig) -> Path:
     data_cfg = _compose([f"experiment={protocol}", *extra]).data
     dm = hydra.utils.instantiate(data_cfg, _convert_="all")
     dm.prepare_data()  # renders the protocol's dataset once; every row reads it
+    threads = _compose([f"experiment={protocol}", *extra]).get("threads")
     for job in jobs:  # rows finished before they were kept (or by hand) are kept now
+        if cfg.heldout and finished(job.folder) and job.current():
+            try:
+                score(job, threads, cfg.heldout)
+            except HeldoutError as e:  # its checkpoint is gone: the row keeps its test result
+                print(f"note: {e}", flush=True)
         if keep(job.folder, job.record):
             print(f"kept {job.folder.name} in {job.record}", flush=True)
     retrain = list(cfg.retrain)
@@ -290,6 +333,8 @@ def reproduce(cfg: DictConfig) -> Path:
     for k, job in enumerate(todo, 1):
         print(f"[{k}/{len(todo)}] {job.folder.name}: {' '.join(job.overrides)}", flush=True)
         m = _train(job, protocol, extra)
+        if cfg.heldout:
+            score(job, threads, cfg.heldout)
         keep(job.folder, job.record)
         print(
             f"    {m['train_seconds'] / 60:.1f} min, test MAE {m['test/mae_mm']:.4f} mm "

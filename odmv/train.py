@@ -23,6 +23,7 @@ from odmv.cli import (
     rank_zero_print,
     remove_if_empty,
     run_app,
+    set_threads,
     task_overrides,
 )
 from odmv.ema import WeightEMA
@@ -125,6 +126,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     """Fit, then test the best checkpoint; returns the test metrics (mm). Continuing from a
     checkpoint in a run folder (``ckpt_path=RUN/checkpoints/last.ckpt``) continues that
     folder: its TensorBoard and CSV logs, and its best checkpoint."""
+    set_threads(cfg.get("threads"))
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     ckpt = read_checkpoint(cfg.ckpt_path) if cfg.ckpt_path else None
     if ckpt is not None and (run := run_folder_of(cfg.ckpt_path)) is not None:
@@ -152,6 +154,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
             train_seconds=round(train_seconds, 1),
             epochs=trainer.current_epoch,
             parameters=sum(p.numel() for p in module.net.parameters()),
+            width=cfg.model.net.get("base_width"),
             model=cfg.model.name,
             views=list(dm.spec.views),
             ablation=cfg.get("ablation"),

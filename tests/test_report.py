@@ -2,6 +2,8 @@
 
 from pathlib import Path
 
+import pytest
+
 from odmv.report import Run, _subset_cell, build_tables, claims_markdown, table_markdown
 
 SHADOWED = "S=4 (all) gains more over S=1 (right) on shadowed pixels"
@@ -81,3 +83,16 @@ def test_tables_give_each_seeds_thread_count_and_epochs_in_seed_order():
     assert s4[head.index("threads")] == "2, 1, ?"
     assert s4[head.index("epochs")] == "70, 40, 70"  # a row half retrained on a new schedule
     assert s1[head.index("threads")] == s1[head.index("epochs")] == "–"  # no run
+
+
+def test_a_run_at_a_rows_own_width_goes_to_that_row_only():
+    runs = [_run("odmvnet", 4, 0.20 + 0.01 * k, 0.5, k, "multitask") for k in (0, 1)]
+    runs += [_run("odmvnet", 4, 0.10 + 0.01 * k, 0.4, k, "multitask") for k in (0, 1)]
+    for r, width in zip(runs, (16, 16, 24, 24), strict=True):
+        r.metrics["width"] = width
+    tables = build_tables(runs)
+    by_label = {c.row.label: c for c in tables["table2"]}
+    assert [r.width for r in by_label["ODMV-Net (S=4)"].runs] == [16, 16]
+    assert [r.width for r in by_label["ODMV-Net at UHRNet's size (S=4, width 24)"].runs] == [24, 24]
+    assert all(r.width == 16 for c in tables["views"] + tables["table1"] for r in c.runs)
+    assert by_label["ODMV-Net (S=4)"].stat("test/mae_mm")[0] == pytest.approx(0.205)

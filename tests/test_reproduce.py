@@ -17,8 +17,17 @@ from omegaconf import OmegaConf
 from odmv.classical import classical_row
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import footprint_from_depth, subset_masks
+from odmv.heldout import HELDOUT
 from odmv.module import FPPModule
-from odmv.reproduce import RECORD, _run_key, plan, reproduce, sweep_overrides, trained_key
+from odmv.reproduce import (
+    RECORD,
+    ReproduceError,
+    _run_key,
+    plan,
+    reproduce,
+    sweep_overrides,
+    trained_key,
+)
 from odmv.rig import VIEW_NAMES
 from odmv.simulate import CONF_DIR
 
@@ -106,8 +115,14 @@ def _compose(overrides, hydra_cfg=False):
 
 def test_sweeps_expand_to_the_tables_rows():
     jobs = sweep_overrides("mini", "models", [])
-    assert len(jobs) == 12  # six rows x the mini protocol's two seeds
+    assert len(jobs) == 14  # seven rows x the mini protocol's two seeds
     assert ["contender=unet_s4", "seed=0"] in jobs
+    assert len(sweep_overrides("paper", "models", [])) == 6  # no width-24 row: ODMV-Net is 46
+    # ODMV-Net at UHRNet's size: width 24 with its full-resolution stage as wide, however the
+    # protocol sets the ODMV-Net width of the other rows (accuracy.md round 28)
+    w24 = _compose(["experiment=mini", "contender=odmvnet_s4_w24"])
+    assert (w24.model.net.base_width, w24.model.net.full_width, len(w24.data.views)) == (24, 24, 4)
+    assert (w24.threads, _compose(["experiment=paper"]).threads) == (2, None)
     cfg = _compose(["experiment=mini", "contender=unet_s4"])
     assert cfg.model.name == "unet" and cfg.model.net.in_channels == 4 * 3  # with the reference
     assert cfg.model.net.base_width == 32  # baselines keep their published width
@@ -122,7 +137,8 @@ def test_mini_trains_every_net_for_the_same_epochs_in_one_cosine_cycle():
     # Table II compares nets at equal epochs (the paper's protocol); 70 epochs for all of them
     # (accuracy.md rounds 25-26), the cosine schedule ending at the last one
     contenders = sorted(p.stem for p in Path(CONF_DIR, "contender").glob("*.yaml"))
-    assert len(contenders) == 6  # the Table II rows that train
+    assert len(contenders) == 7  # the Table II rows that train
+    assert sorted(_compose(["experiment=mini"]).contenders) == contenders
     for contender in contenders:
         cfg = _compose(["experiment=mini", f"contender={contender}"])
         assert (cfg.trainer.max_epochs, cfg.scheduler.T_0) == (70, 70), contender
@@ -159,14 +175,18 @@ def test_paper_keeps_the_recipe_and_the_other_presets_take_the_improvements():
 def test_plan_trains_a_configuration_shared_by_tables_once(tmp_path):
     jobs = plan("mini", ["views", "ablation", "models"], [0], [], tmp_path)
     names = [j.folder.name for j in jobs]
-    assert len(names) == len(set(names)) == 14  # 4 + 6 + 6 rows, ODMV-Net S=4 shared by all
+    assert len(names) == len(set(names)) == 15  # 4 + 6 + 7 rows, ODMV-Net S=4 shared by all
     assert names.count("odmvnet-s4-multitask-seed0") == 1
+    assert "odmvnet-s4-multitask-w24-seed0" in names  # another width: another row and folder
+    # two configurations under one folder name would overwrite each other's run: refused
+    with pytest.raises(ReproduceError, match="odmvnet-s4-multitask-seed0"):
+        plan("mini", ["models"], [0], ["widths.odmvnet=24"], tmp_path)
 
 
 @pytest.mark.parametrize(
     "setting",
     [
-        "widths.odmvnet=24",
+        "widths.odmvnet=20",
         "alphas.odmvnet=0.5",
         "lrs.odmvnet=3e-3",
         "full_width=8",
@@ -180,7 +200,8 @@ def test_a_row_is_keyed_by_its_own_net_only(tmp_path, setting):
     today = {j.folder.name: j.key for j in plan("mini", ["models"], [0], [], tmp_path)}
     changed_net = plan("mini", ["models"], [0], [setting], tmp_path)
     changed = sorted(j.folder.name for j in changed_net if j.key != today[j.folder.name])
-    assert changed == ["odmvnet-s4-multitask-seed0"]
+    assert "odmvnet-s4-multitask-seed0" in changed  # and the width-24 row where it reaches it
+    assert set(changed) <= {"odmvnet-s4-multitask-seed0", "odmvnet-s4-multitask-w24-seed0"}
 
 
 def test_a_setting_added_as_null_keeps_finished_rows_valid(tmp_path):
@@ -253,6 +274,14 @@ def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, 
     assert [r["seeds"] for r in views] == ["1", "1", "1", "1"]
     assert all(float(r["mae_mm"]) > 0 for r in views)
     assert list(out.glob("fig6_*.png")) and list(out.glob("bars_*.png"))
+    # every trained row is also scored on the held-out scenes, and its record keeps that
+    for path in metrics:
+        if path.parent.name != "classical":
+            held = json.loads((path.parent / HELDOUT).read_text())
+            assert held["test/mae_mm"] > 0 and held["dataset"] != str(tiny_dataset.resolve())
+            assert (out / "runs" / path.parent.name / HELDOUT).read_text() == json.dumps(
+                held, indent=1
+            ) + "\n"
     stamps = {p: p.stat().st_mtime_ns for p in metrics}
     reproduce(cfg)  # everything is on disk: nothing is trained again
     assert {p: p.stat().st_mtime_ns for p in metrics} == stamps
@@ -323,6 +352,7 @@ def _reproduce_cfg(overrides, runs, out):
             "seeds": [0],
             "overrides": overrides,
             "classical": True,
+            "heldout": 4,
             "retrain": [],
             "runs_dir": str(runs),
             "out": str(out),
