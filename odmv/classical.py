@@ -22,6 +22,7 @@ from odmv.fpp import fuse_views, period_in_camera_px, reconstruct_view
 from odmv.io.manifest import load_manifest
 from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_suffix
 from odmv.module import subset_masks, write_json, write_test_outputs
+from odmv.provenance import provenance
 
 #: Settings of the classical pipeline (documented in docs/reproduce.md).
 MIN_PERIOD_CAMERA_PX = 3.0  # finer sequences alias in the camera and are left out
@@ -117,9 +118,9 @@ def classical_row(
         parameters=0,
         train_seconds=0.0,
         test_seconds=round(time.perf_counter() - t0, 1),
-        dataset=str(Path(m.root).resolve()),
         scenes=len(ids),
         resolution=[h, w],
+        **provenance(m.root),
     )
     out_dir = Path(out_dir)
     write_test_outputs(out_dir, rows, preds)

@@ -13,13 +13,8 @@ profiles of all models on one plot) and a bar chart per table.
 from __future__ import annotations
 
 import csv
-import hashlib
 import json
-import os
-import platform
-import subprocess
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
 from pathlib import Path
 
 import hydra
@@ -29,6 +24,7 @@ from omegaconf import DictConfig
 
 from odmv.cli import run_app
 from odmv.module import PREDICTIONS, SCENES_CSV
+from odmv.provenance import manifest_sha1
 from odmv.simulate import CONF_DIR
 
 matplotlib.use("Agg")
@@ -412,23 +408,6 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
 
 
 # ----------------------------------------------------------------------------- header
-def _git(*args: str) -> str:
-    root = Path(__file__).resolve().parent.parent
-    done = subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True)
-    if done.returncode:
-        raise OSError(done.stderr.strip())
-    return done.stdout.strip()
-
-
-def _commit() -> str:
-    try:
-        sha = _git("rev-parse", "--short", "HEAD")
-        dirty = _git("status", "--porcelain", "--untracked-files=no")
-    except OSError:
-        return "unknown (not a git checkout)"
-    return sha + (" (with uncommitted changes)" if dirty else "")
-
-
 def _relative(path: Path) -> str:
     """A path relative to the working directory where it lies below it (portable reports)."""
     try:
@@ -437,28 +416,38 @@ def _relative(path: Path) -> str:
         return str(path)
 
 
+def _recorded(runs: list[Run], key: str) -> str:
+    """The distinct values of a provenance field over the runs' records, most runs first
+    (`unknown` for records that predate it)."""
+    counts: dict[str, int] = {}
+    for r in runs:
+        value = str(r.metrics.get(key) or "unknown")
+        counts[value] = counts.get(value, 0) + 1
+    ordered = sorted(counts, key=lambda v: (-counts[v], v))
+    if len(ordered) == 1:
+        return ordered[0]
+    return "; ".join(f"{v} ({counts[v]} runs)" for v in ordered)
+
+
+def _dates(runs: list[Run]) -> str:
+    dates = sorted(d for r in runs if (d := r.metrics.get("finished")))
+    if not dates:
+        return "unknown"
+    span = dates[0] if dates[0] == dates[-1] else f"{dates[0]} to {dates[-1]}"
+    missing = len(runs) - len(dates)
+    return span + (f" ({missing} runs unrecorded)" if missing else "")
+
+
 def _dataset_line(runs: list[Run]) -> str:
-    # a kept record names its dataset relative to the repository, a run folder absolutely
-    roots = sorted({str(Path(d).resolve()) for r in runs if (d := r.metrics.get("dataset"))})
-    parts = []
-    for root in roots:
-        manifest = Path(root) / "manifest.json"
-        fp = (
-            hashlib.sha1(manifest.read_bytes()).hexdigest()[:12]
-            if manifest.is_file()
-            else "manifest not found"
-        )
-        parts.append(f"`{Path(root).name}` (manifest sha1 {fp})")
-    return ", ".join(parts) or "unknown"
-
-
-def _machine() -> str:
-    import torch
-
-    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
-    return (
-        f"{platform.machine()}, {os.cpu_count()} CPU cores, {gpu}; Python "
-        f"{platform.python_version()}, torch {torch.__version__}"
+    # a kept record names its dataset relative to the repository, a run folder absolutely;
+    # its manifest's fingerprint as recorded at training, else as on disk now
+    found: dict[str, str] = {}
+    for r in runs:
+        if d := r.metrics.get("dataset"):
+            fp = r.metrics.get("dataset_sha1") or manifest_sha1(d) or "manifest not found"
+            found.setdefault(Path(d).name, fp)
+    return ", ".join(f"`{name}` (manifest sha1 {fp})" for name, fp in sorted(found.items())) or (
+        "unknown"
     )
 
 
@@ -620,9 +609,9 @@ def write_report(
         "",
         f"- protocol: {protocol or 'not given'}",
         f"- dataset: {_dataset_line(runs)}",
-        f"- commit: {_commit()}",
-        f"- machine: {_machine()}",
-        f"- date: {datetime.now(timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}",
+        f"- commit: {_recorded(runs, 'commit')}",
+        f"- machine: {_recorded(runs, 'machine')}",
+        f"- trained: {_dates(runs)}",
         f"- runs: {len(runs)} finished ({seconds / 60:.1f} min of training), {len(pending)} "
         "unfinished",
         "",

@@ -28,6 +28,7 @@ from odmv.cli import (
 )
 from odmv.ema import WeightEMA
 from odmv.module import FPPModule, write_json
+from odmv.provenance import provenance
 from odmv.simulate import CONF_DIR
 from odmv.sweep import append_row
 
@@ -162,8 +163,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
             # floating-point sums split by thread count: the same seed on another count is
             # another run (docs/accuracy.md, "Repeatability")
             threads=torch.get_num_threads(),
-            dataset=str(Path(dm.root).resolve()),
             overrides=" ".join(overrides),
+            **provenance(dm.root),
         )
         if trainer.is_global_zero:
             write_json(out_dir / "metrics.json", metrics)

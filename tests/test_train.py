@@ -1,8 +1,11 @@
 """Training, resume, evaluation, prediction and multirun through the real apps (tiny sizes)."""
 
 import csv
+import hashlib
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,6 +26,11 @@ def test_train_writes_checkpoints_metrics_and_tensorboard(trained):
     assert 0 < metrics["test/mae_mm"] < 50 and metrics["test/rmse_mm"] > 0
     assert (out / "metrics.json").is_file() and (out / "split.json").is_file()
     assert metrics["threads"] == torch.get_num_threads()
+    # where it came from, so a report rebuilt from the records says the same
+    sha1 = hashlib.sha1((Path(metrics["dataset"]) / "manifest.json").read_bytes()).hexdigest()
+    assert metrics["dataset_sha1"] == sha1[:12]
+    assert metrics["commit"] and metrics["finished"].endswith(" UTC")
+    assert f"{os.cpu_count()} CPU cores" in metrics["machine"]
     acc = EventAccumulator(str(out / "tensorboard"), size_guidance={"images": 0}).Reload()
     tags = acc.Tags()
     for tag in (
@@ -223,3 +231,14 @@ def test_multirun_writes_one_csv_with_failed_jobs_and_their_errors(tiny_dataset,
             assert r["status"] == "ok" and float(r["test/mae_mm"]) > 0 and not r["error"]
         else:
             assert r["status"] == "failed" and r["error"].startswith("data.resolution: 40x40")
+
+
+def test_threads_pins_torch_threads_for_the_run(tiny_dataset, tmp_path):
+    before = torch.get_num_threads()
+    try:
+        cfg = compose_config("train", tiny_overrides(tiny_dataset, tmp_path, "threads=1"))
+        assert train(cfg)["threads"] == torch.get_num_threads() == 1
+        with pytest.raises(ValueError, match="threads"):
+            train(compose_config("train", tiny_overrides(tiny_dataset, tmp_path, "threads=0")))
+    finally:
+        torch.set_num_threads(before)
