@@ -23,8 +23,8 @@ import numpy as np
 from omegaconf import DictConfig
 
 from odmv.cli import run_app
+from odmv.heldout import HELDOUT
 from odmv.module import PREDICTIONS, SCENES_CSV
-from odmv.provenance import manifest_sha1
 from odmv.simulate import CONF_DIR
 
 matplotlib.use("Agg")
@@ -36,6 +36,13 @@ METRICS = ("mae_mm", "mse_mm2", "rmse_mm")
 #: records lack them
 FIRST_VIEW = {"first_unlit": "first-unlit", "first_shadowed": "first-shadowed"}
 FIGURE_SCENES = 3  # test scenes in Fig. 6 and 7: one per scene family
+#: the held-out set's columns (odmv.heldout): every pixel, then the subsets as named above
+HELDOUT_SUBSETS = {"all": "", "shadowed": "shadowed"} | FIRST_VIEW
+SPLITS = {"test": "test split", "heldout": "held-out"}  # where a claim is judged
+
+
+def _suffix(subset: str) -> str:
+    return "" if subset == "all" else f"_{subset}"
 
 
 @dataclass(frozen=True)
@@ -160,11 +167,24 @@ def find_runs(paths: list[Path]) -> tuple[list[Run], list[Path]]:
                 raise ReportError(f"{folder / 'metrics.json'}: unreadable ({e})") from None
             if "test/mae_mm" not in metrics or "model" not in metrics:
                 raise ReportError(f"{folder / 'metrics.json'}: not a test result of odmv.train")
-            runs.append(Run(folder, metrics))
+            runs.append(Run(folder, metrics | _heldout(folder)))
         for log in p.rglob("train.log"):
             if not (log.parent / "metrics.json").is_file():
                 pending.append(log.parent)
     return runs, sorted(set(pending))
+
+
+def _heldout(folder: Path) -> dict:
+    """A run's held-out scores (odmv.heldout) as ``heldout/...`` metrics; none where it was
+    not scored."""
+    path = folder / HELDOUT
+    if not path.is_file():
+        return {}
+    try:
+        held = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ReportError(f"{path}: unreadable ({e})") from None
+    return {f"heldout/{k[5:]}": v for k, v in held.items() if k.startswith("test/")}
 
 
 def build_tables(runs: list[Run]) -> dict[str, list[Cell]]:
@@ -224,6 +244,7 @@ def table_markdown(name: str, cells: list[Cell]) -> list[str]:
         "MSE shadowed (mm²)",
         "RMSE shadowed (mm)",
         *[f"MAE {name} (mm)" for name in FIRST_VIEW.values()],
+        *[f"held-out MAE{' ' + name if name else ''} (mm)" for name in HELDOUT_SUBSETS.values()],
     ]
     head += ["coverage (%)"] if classical else []
     head += ["parameters", "epochs", "train time (min)", "threads"]
@@ -235,6 +256,7 @@ def table_markdown(name: str, cells: list[Cell]) -> list[str]:
         for sub in ("", "_shadowed"):
             cols += [_fmt(*c.stat(f"test/{m}{sub}")) for m in METRICS]
         cols += [_subset_cell(c, f"test/mae_mm_{k}") for k in FIRST_VIEW]
+        cols += [_subset_cell(c, f"heldout/mae_mm{_suffix(k)}") for k in HELDOUT_SUBSETS]
         if classical:
             cov = c.stat("test/coverage")[0]
             cols.append(f"{100 * cov:.1f}" if np.isfinite(cov) else "–")
@@ -243,7 +265,9 @@ def table_markdown(name: str, cells: list[Cell]) -> list[str]:
         cols.append(f"{int(params):,}" if np.isfinite(params) and params > 0 else "–")
         cols.append(_per_seed_cell(c, "epochs"))
         cols.append(f"{minutes:.1f}" if np.isfinite(minutes) and minutes > 0 else "–")
-        cols.append(_per_seed_cell(c, "threads"))
+        counts = {r.metrics["threads"] for r in c.runs if "threads" in r.metrics}
+        # seeds on other thread counts are not repeats of one configuration: marked
+        cols.append(_per_seed_cell(c, "threads") + (" (differ)" if len(counts) > 1 else ""))
         cols += [_paper(c.row, i) for i in range(3)]
         lines.append("| " + " | ".join(cols) + " |")
     return lines + [""]
@@ -274,11 +298,14 @@ def improvements_markdown(cells: list[Cell]) -> list[str]:
 
 
 CLAIMS_RULE = (
-    "Each claim compares mean test MAE over seeds. difference: how much lower the claimed "
-    "better row is (negative: it is higher) ± its standard error over seeds (sqrt(s_a²/n_a + "
-    "s_b²/n_b); for the subset claims, over the seeds both rows ran). Verdict: `holds` or "
-    "`does not hold` when the difference is more than twice its standard error, else `within "
-    "seed noise` and which way the means lean; with two seeds this is a weak test."
+    "Each claim compares mean MAE over seeds, on the test split and on the held-out set (200 "
+    "fresh scenes of the same twin: two scenes of a 20-scene split move a run by 0.02 mm). "
+    "difference: how much lower the claimed better row is (negative: it is higher) ± its "
+    "standard error over seeds (sqrt(s_a²/n_a + s_b²/n_b); for the subset claims, over the "
+    "seeds both rows ran). Verdict on each set: `holds` or `does not hold` when the difference "
+    "is more than twice its standard error, else `within seed noise` and which way the means "
+    "lean; with two seeds this is a weak test. A claim `holds` only where both sets say so; "
+    "where they differ (or the rows have no held-out scores) each set's verdict is given."
 )
 
 
@@ -292,9 +319,19 @@ def _verdict(diff: float, se: float) -> str:
     return f"within seed noise ({'holds' if diff > 0 else 'fails'} in the mean)"
 
 
-def _lower(better: Cell, worse: Cell) -> tuple[float, float]:
-    """How much lower ``better``'s mean MAE is than ``worse``'s, and its standard error."""
-    a, b = better.values("test/mae_mm"), worse.values("test/mae_mm")
+def _both(verdicts: dict[str, str]) -> str:
+    """One verdict from the test split's and the held-out set's: `holds` only where both say
+    so; where they differ, each is given."""
+    test, held = verdicts["test"], verdicts["heldout"]
+    if test == held:
+        return test
+    return "; ".join(f"{SPLITS[k]}: {v}" for k, v in verdicts.items())
+
+
+def _lower(better: Cell, worse: Cell, split: str = "test") -> tuple[float, float]:
+    """How much lower ``better``'s mean MAE is than ``worse``'s on ``split`` (test or
+    heldout), and its standard error."""
+    a, b = better.values(f"{split}/mae_mm"), worse.values(f"{split}/mae_mm")
     a, b = a[np.isfinite(a)], b[np.isfinite(b)]
     if not len(a) or not len(b):
         return np.nan, np.nan
@@ -304,18 +341,20 @@ def _lower(better: Cell, worse: Cell) -> tuple[float, float]:
     return diff, float(np.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b)))
 
 
-def _subset_gain(many: Cell, one: Cell, subset: str) -> tuple[float, float, float, float]:
+def _subset_gain(
+    many: Cell, one: Cell, subset: str, split: str = "test"
+) -> tuple[float, float, float, float]:
     """The relative MAE gain of ``many`` views over ``one`` on all pixels and on ``subset``'s
     (means over seeds), and how much larger the subset's gain is (mean and standard error over
-    the seeds both rows ran with the subset's metric)."""
+    the seeds both rows ran with the subset's metric), on ``split`` (test or heldout)."""
     by_seed = {r.metrics.get("seed"): r.metrics for r in one.runs}
-    key = f"test/mae_mm_{subset}"
+    key = f"{split}/mae_mm_{subset}"
     pairs = []
     for r in many.runs:
         base = by_seed.get(r.metrics.get("seed"))
         if base is None or key not in base or key not in r.metrics:
             continue
-        g = [1 - r.metrics[k] / base[k] for k in ("test/mae_mm", key)]
+        g = [1 - r.metrics[k] / base[k] for k in (f"{split}/mae_mm", key)]
         pairs.append(g)
     if not pairs:
         return np.nan, np.nan, np.nan, np.nan
@@ -344,7 +383,13 @@ def claims_markdown(tables: dict[str, list[Cell]]) -> list[str]:
         diff, se = _lower(better, worse)
         means = f"{better.stat('test/mae_mm')[0]:.4f} vs {worse.stat('test/mae_mm')[0]:.4f}"
         shown = f"{_fmt(diff, se)} mm" if np.isfinite(diff) else "–"
-        lines.append(f"| {claim} | {means}{note} | {shown} | {_verdict(diff, se)} |")
+        held = _lower(better, worse, "heldout")
+        if np.isfinite(held[0]):
+            a, b = better.stat("heldout/mae_mm")[0], worse.stat("heldout/mae_mm")[0]
+            means += f"; held-out {a:.4f} vs {b:.4f}"
+            shown += f"; held-out {_fmt(*held)} mm"
+        verdict = _both({"test": _verdict(diff, se), "heldout": _verdict(*held)})
+        lines.append(f"| {claim} | {means}{note} | {shown} | {verdict} |")
 
     views, table1 = tables["views"], tables["table1"]
     for fewer, more in zip(views, views[1:], strict=False):
@@ -365,15 +410,21 @@ def claims_markdown(tables: dict[str, list[Cell]]) -> list[str]:
             f" (reduction {ours_pct}; paper {paper} %)",
         )
     for subset, name in ({"shadowed": "shadowed"} | FIRST_VIEW).items():
-        g_all, g_sub, d, se = _subset_gain(views[-1], views[0], subset)
-        gains = (
-            f"gain {100 * g_all:.1f} % on all, {100 * g_sub:.1f} % on {name} pixels"
-            if np.isfinite(d)
-            else "–"
-        )
-        shown = f"{100 * d:+.1f} ± {100 * se:.1f} points" if np.isfinite(se) else "–"
+        gains, shown, verdicts = [], [], {}
+        for split in SPLITS:
+            g_all, g_sub, d, se = _subset_gain(views[-1], views[0], subset, split)
+            verdicts[split] = _verdict(d, se)
+            if split != "test" and not np.isfinite(d):
+                continue  # no held-out scores: the test split's figures alone
+            at = "" if split == "test" else "held-out "
+            gains.append(
+                f"{at}gain {100 * g_all:.1f} % on all, {100 * g_sub:.1f} % on {name} pixels"
+                if np.isfinite(d)
+                else "–"
+            )
+            shown.append(f"{at}{100 * d:+.1f} ± {100 * se:.1f} points" if np.isfinite(se) else "–")
         claim = f"{views[-1].row.label} gains more over {views[0].row.label} on {name} pixels"
-        lines.append(f"| {claim} | {gains} | {shown} | {_verdict(d, se)} |")
+        lines.append(f"| {claim} | {'; '.join(gains)} | {'; '.join(shown)} | {_both(verdicts)} |")
     return lines + [""]
 
 
@@ -439,16 +490,16 @@ def _dates(runs: list[Run]) -> str:
 
 
 def _dataset_line(runs: list[Run]) -> str:
-    # a kept record names its dataset relative to the repository, a run folder absolutely;
-    # its manifest's fingerprint as recorded at training, else as on disk now
-    found: dict[str, str] = {}
+    """The runs' datasets by name, with the manifest fingerprints their records hold (never
+    read from disk: a rebuilt report says what the records say, wherever it is rebuilt)."""
+    found: dict[str, set[str]] = {}
     for r in runs:
         if d := r.metrics.get("dataset"):
-            fp = r.metrics.get("dataset_sha1") or manifest_sha1(d) or "manifest not found"
-            found.setdefault(Path(d).name, fp)
-    return ", ".join(f"`{name}` (manifest sha1 {fp})" for name, fp in sorted(found.items())) or (
-        "unknown"
-    )
+            fp = r.metrics.get("dataset_sha1") or "not recorded"
+            found.setdefault(Path(d).name, set()).add(fp)
+    return ", ".join(
+        f"`{name}` (manifest sha1 {', '.join(sorted(fps))})" for name, fps in sorted(found.items())
+    ) or ("unknown")
 
 
 # ----------------------------------------------------------------------------- figures
@@ -622,10 +673,12 @@ def write_report(
         "pixels. `first-unlit`: pixels the first projector (right, the one view of every S = 1 "
         "row) leaves unlit and another lights, where only more views add fringes; most lie "
         "outside its footprint, a band of the field. `first-shadowed`: those inside its "
-        "footprint, hidden by occlusion. `–`: the row's records predate those two. epochs and "
+        "footprint, hidden by occlusion. `–`: the row's records predate those two. held-out: the "
+        "same MAE over 200 fresh scenes of the same twin (odmv.heldout; `–`: the row was not "
+        "scored there). epochs and "
         "threads: each seed's epochs trained and torch thread count, in seed order (`?`: not "
-        "recorded); runs of one configuration with other thread counts differ as much as "
-        "seeds do. Paper "
+        "recorded; `(differ)`: the seeds ran on other counts); runs of one configuration with "
+        "other thread counts differ as much as seeds do. Paper "
         "columns: the paper's published numbers, for its 480 px protocol; the paper gives no "
         "numbers for S = 1..3. `missing`: no finished run for that row.",
         "",

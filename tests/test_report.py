@@ -4,7 +4,14 @@ from pathlib import Path
 
 import pytest
 
-from odmv.report import Run, _subset_cell, build_tables, claims_markdown, table_markdown
+from odmv.report import (
+    Run,
+    _subset_cell,
+    build_tables,
+    claims_markdown,
+    table_markdown,
+    write_report,
+)
 
 SHADOWED = "S=4 (all) gains more over S=1 (right) on shadowed pixels"
 
@@ -19,6 +26,8 @@ def _run(model, views, mae, shadowed, seed, ablation=None):
     }
     if ablation:
         metrics["ablation"] = ablation
+    # the held-out set agrees with the test split unless a test says otherwise
+    metrics |= {f"heldout/{k[5:]}": v for k, v in metrics.items() if k.startswith("test/")}
     return Run(Path(f"{model}-{views}-{ablation}-{seed}"), metrics)
 
 
@@ -47,6 +56,7 @@ def test_claims_get_verdicts_from_the_seed_spread():
     for r in runs:
         if r.n_views == 4:
             r.metrics["test/mae_mm_shadowed"] /= 2
+            r.metrics["heldout/mae_mm_shadowed"] /= 2
     assert _claims(runs)[SHADOWED] == "holds"
 
 
@@ -58,8 +68,10 @@ def test_first_unlit_claim_pairs_only_the_seeds_whose_records_have_the_metric():
     # seeds 2 and 3 have it: four views halve the error where the one view has no fringe
     for k, (one, four) in zip((2, 3), ((0.8, 0.4), (0.9, 0.5)), strict=True):
         runs += [_run("odmvnet", s, 0.3 - 0.02 * s, 0.6, k, "multitask") for s in (1, 4)]
-        runs[-2].metrics["test/mae_mm_first_unlit"] = one
-        runs[-1].metrics["test/mae_mm_first_unlit"] = four
+        for run, value in zip(runs[-2:], (one, four), strict=True):
+            run.metrics["test/mae_mm_first_unlit"] = run.metrics["heldout/mae_mm_first_unlit"] = (
+                value
+            )
     assert _claims(runs)[first] == "holds"
     ours = next(c for c in build_tables(runs)["views"] if c.row.views == 4)
     assert _subset_cell(ours, "test/mae_mm_first_unlit") == "0.4500 ± 0.0707 (2 of 4 seeds)"
@@ -67,6 +79,7 @@ def test_first_unlit_claim_pairs_only_the_seeds_whose_records_have_the_metric():
     for r in runs:
         if r.n_views == 4 and "test/mae_mm_first_unlit" in r.metrics:
             r.metrics["test/mae_mm_first_unlit"] *= 2
+            r.metrics["heldout/mae_mm_first_unlit"] *= 2
     assert _claims(runs)[first] == "does not hold"
 
 
@@ -80,9 +93,13 @@ def test_tables_give_each_seeds_thread_count_and_epochs_in_seed_order():
     head = lines[2].strip("| ").split(" | ")
     s4 = next(line for line in lines if line.startswith("| S=4")).strip("| ").split(" | ")
     s1 = next(line for line in lines if line.startswith("| S=1")).strip("| ").split(" | ")
-    assert s4[head.index("threads")] == "2, 1, ?"
+    assert s4[head.index("threads")] == "2, 1, ? (differ)"  # two counts: not one configuration
     assert s4[head.index("epochs")] == "70, 40, 70"  # a row half retrained on a new schedule
     assert s1[head.index("threads")] == s1[head.index("epochs")] == "–"  # no run
+    runs[0].metrics["threads"] = 2
+    lines = table_markdown("views", build_tables(runs)["views"])
+    s4 = next(line for line in lines if line.startswith("| S=4")).strip("| ").split(" | ")
+    assert s4[head.index("threads")] == "2, 2, ?"
 
 
 def test_a_run_at_a_rows_own_width_goes_to_that_row_only():
@@ -96,3 +113,29 @@ def test_a_run_at_a_rows_own_width_goes_to_that_row_only():
     assert [r.width for r in by_label["ODMV-Net at UHRNet's size (S=4, width 24)"].runs] == [24, 24]
     assert all(r.width == 16 for c in tables["views"] + tables["table1"] for r in c.runs)
     assert by_label["ODMV-Net (S=4)"].stat("test/mae_mm")[0] == pytest.approx(0.205)
+
+
+def test_a_claim_holds_only_where_the_test_split_and_the_held_out_set_both_say_so():
+    two = "S=2 (right, up) below S=1 (right)"
+    mae = {1: (0.30, 0.32), 2: (0.20, 0.21)}
+    runs = [_run("odmvnet", s, mae[s][k], 0.5, k, "multitask") for s in mae for k in (0, 1)]
+    assert _claims(runs)[two] == "holds"
+    for r in runs:  # on 200 fresh scenes S = 2 is the worse
+        r.metrics["heldout/mae_mm"] = {1: 0.25, 2: 0.35}[r.n_views] + 0.01 * r.metrics["seed"]
+    assert _claims(runs)[two] == "test split: holds; held-out: does not hold"
+    for r in runs:  # records from before held-out scoring
+        r.metrics = {k: v for k, v in r.metrics.items() if not k.startswith("heldout/")}
+    assert _claims(runs)[two] == "test split: holds; held-out: missing"
+    # the held-out columns say where a row has no held-out scores
+    lines = table_markdown("views", build_tables(runs)["views"])
+    head = lines[2].strip("| ").split(" | ")
+    s2 = next(line for line in lines if line.startswith("| S=2")).strip("| ").split(" | ")
+    assert s2[head.index("held-out MAE (mm)")] == "–"
+
+
+def test_the_committed_mini_report_rebuilds_from_its_records_byte_for_byte(tmp_path):
+    # python -m odmv.report runs=[experiments/results/mini/runs] out=experiments/results/mini
+    # protocol=mini: what the repository says of its main result is what its records say
+    results = Path(__file__).resolve().parents[1] / "experiments" / "results" / "mini"
+    write_report([results / "runs"], tmp_path, protocol="mini")
+    assert (tmp_path / "tables.md").read_text() == (results / "tables.md").read_text()

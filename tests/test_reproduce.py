@@ -279,6 +279,7 @@ def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, 
         if path.parent.name != "classical":
             held = json.loads((path.parent / HELDOUT).read_text())
             assert held["test/mae_mm"] > 0 and held["dataset"] != str(tiny_dataset.resolve())
+            assert f"{held['test/mae_mm']:.4f}" in table  # the report's held-out column
             assert (out / "runs" / path.parent.name / HELDOUT).read_text() == json.dumps(
                 held, indent=1
             ) + "\n"
