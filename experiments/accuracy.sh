@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Accuracy levers on the mini protocol (docs/accuracy.md): one run per variant and seed, each
+# Accuracy levers on the mini protocol (experiments/results/accuracy/notebook.md): one run per variant and seed, each
 # `python -m odmv.train experiment=$EXP <overrides> seed=<k>` into outputs/accuracy/<variant>-seed<k>
 # (EXP: mini unless a round says otherwise).
 # Usage: bash experiments/accuracy.sh [round1|round2 ...] (default: the latest round).
@@ -21,7 +21,7 @@ run() {  # run VARIANT OVERRIDES...
     mv "$dir.log" "$dir/train.out"
   done
 }
-round1() {  # 2026-11-23, recorded in docs/accuracy.md
+round1() {  # 2026-11-23, recorded in experiments/results/accuracy/notebook.md
   # ODMV-Net, S = 4, full model (Table I row 6); the paper's recipe is the reproduction's row.
   run s4-reference reference=true
   SEEDS=0 run s4-recipe  # the paper's recipe again on this code, re-checked
@@ -79,7 +79,7 @@ round6() {
 }
 round7() {
   # Parts taller than one period of the training fringe (10.6-12.1 mm of height) come out one
-  # fringe order low (docs/accuracy.md, height bands). Probe: the coarsest fringe (one period
+  # fringe order low (experiments/results/accuracy/notebook.md, height bands). Probe: the coarsest fringe (one period
   # over the projector) alone, on UNet S = 1: the ambiguity goes, at 8x less phase per mm.
   run unet-s1-coarse contender=unet_s1 data.fringe_frequency=0
 }
@@ -90,7 +90,7 @@ round8() {
   # the tall parts (40 % of every net's MAE) get little gradient. Pure L1 (alpha 0) optimizes
   # the MAE itself. Screened on the demo (ODMV-Net width 8), then the mini nets.
   EXP=quickstart run demo-l1 loss.alpha=0
-  # the preset as it was (seed 0: the recorded demo, 0.508 mm, docs/accuracy.md)
+  # the preset as it was (seed 0: the recorded demo, 0.508 mm, experiments/results/accuracy/notebook.md)
   SEEDS=1 EXP=quickstart run demo loss.alpha=0.8
 }
 round9() {
@@ -103,7 +103,7 @@ round9() {
 }
 round10() {
   # ODMV-Net's 3D weights channels-last (the default now) make its step about a quarter
-  # faster, which pays for the demo at width 12 (9.6 min of training before, accuracy.md
+  # faster, which pays for the demo at width 12 (9.6 min of training before, notebook
   # round 6) within 10 minutes; with L1 now the preset's loss.
   EXP=quickstart run demo-w12-l1 widths.odmvnet=12
 }
@@ -133,7 +133,7 @@ round13() {
 }
 round14() {
   # UHRNet, whose branches keep full-resolution features, is the better regressor at every
-  # height (held-out set, accuracy.md); ODMV-Net's backbone runs at half resolution since
+  # height (held-out set, notebook); ODMV-Net's backbone runs at half resolution since
   # round 3, adopted for time and never compared at equal time. Width 8 at stride 1 should
   # cost about 1.2x width 16 at stride 2 (rounds 3 and 6). And rounds 12 and 13 together.
   run s4-stride1-w8 stem_stride=1 widths.odmvnet=8

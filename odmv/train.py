@@ -161,7 +161,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
             ablation=cfg.get("ablation"),
             seed=cfg.seed,
             # floating-point sums split by thread count: the same seed on another count is
-            # another run (docs/accuracy.md, "Repeatability")
+            # another run (experiments/results/accuracy/notebook.md, "Repeatability")
             threads=torch.get_num_threads(),
             overrides=" ".join(overrides),
             **provenance(dm.root),

@@ -119,7 +119,7 @@ def test_sweeps_expand_to_the_tables_rows():
     assert ["contender=unet_s4", "seed=0"] in jobs
     assert len(sweep_overrides("paper", "models", [])) == 6  # no width-24 row: ODMV-Net is 46
     # ODMV-Net at UHRNet's size: width 24 with its full-resolution stage as wide, however the
-    # protocol sets the ODMV-Net width of the other rows (accuracy.md round 28)
+    # protocol sets the ODMV-Net width of the other rows (notebook round 28)
     w24 = _compose(["experiment=mini", "contender=odmvnet_s4_w24"])
     assert (w24.model.net.base_width, w24.model.net.full_width, len(w24.data.views)) == (24, 24, 4)
     assert (w24.threads, _compose(["experiment=paper"]).threads) == (2, None)
@@ -135,7 +135,7 @@ def test_sweeps_expand_to_the_tables_rows():
 
 def test_mini_trains_every_net_for_the_same_epochs_in_one_cosine_cycle():
     # Table II compares nets at equal epochs (the paper's protocol); 70 epochs for all of them
-    # (accuracy.md rounds 25-26), the cosine schedule ending at the last one
+    # (notebook rounds 25-26), the cosine schedule ending at the last one
     contenders = sorted(p.stem for p in Path(CONF_DIR, "contender").glob("*.yaml"))
     assert len(contenders) == 7  # the Table II rows that train
     assert sorted(_compose(["experiment=mini"]).contenders) == contenders
@@ -150,7 +150,7 @@ def test_paper_keeps_the_recipe_and_the_other_presets_take_the_improvements():
         return (cfg.norm, cfg.reference, cfg.data.depth_target, cfg.loss.alpha, net.stem_stride)
 
     assert switches(_compose(["experiment=paper"])) == ("batch", False, "depth", 0.8, 1)
-    improved = ("group", True, "height", 0.0, 2)  # pure L1 for ODMV-Net (accuracy.md round 9)
+    improved = ("group", True, "height", 0.0, 2)  # pure L1 for ODMV-Net (notebook round 9)
     for preset in ("paper_plus", "mini", "quickstart"):
         assert switches(_compose([f"experiment={preset}"])) == improved, preset
     plus, paper = _compose(["experiment=paper_plus"]), _compose(["experiment=paper"])
@@ -162,7 +162,7 @@ def test_paper_keeps_the_recipe_and_the_other_presets_take_the_improvements():
     # the same data-side switches reach the baselines: a fair comparison
     unet = _compose(["experiment=mini", "contender=unet_s1"])
     assert (unet.norm, unet.reference, unet.data.depth_target) == improved[:3]
-    # L1 where it helped a baseline (hNet, UHRNet: accuracy.md round 21), the paper's SSIM
+    # L1 where it helped a baseline (hNet, UHRNet: notebook round 21), the paper's SSIM
     # share where it did not (UNet round 9, MTLNet round 21), in both presets that compare
     alpha = {"unet_s1": 0.8, "hnet_s1": 0.0, "uhrnet_s1": 0.0, "mtlnet_s1": 0.8, "unet_s4": 0.8}
     for preset in ("mini", "paper_plus"):
