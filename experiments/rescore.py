@@ -24,8 +24,9 @@ import numpy as np
 import torch
 from split_predictions import run_data  # this folder's sibling script
 
+from odmv.io.atomic import write_json
 from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_results
-from odmv.module import PREDICTIONS, SCENES_CSV, subset_masks, write_json, write_scene_rows
+from odmv.module import PREDICTIONS, SCENES_CSV, subset_masks, write_scene_rows
 
 
 def rescore(run: Path) -> list[str]:

@@ -9,7 +9,7 @@ import resource
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-import odmv.config  # noqa: F401  (registers the config resolvers)
+from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.data.normalize import Normalization
 from odmv.data.reference import view_channels
 from odmv.module import FPPModule
@@ -21,8 +21,6 @@ PRESETS = ("paper", "paper_plus", "mini", "quickstart")
 def preset_config(preset: str, model: str, overrides: list[str] = ()) -> DictConfig:
     """The training config of ``experiment=preset model=model`` plus ``overrides``."""
     from hydra import compose, initialize_config_dir
-
-    from odmv.simulate import CONF_DIR
 
     if preset not in PRESETS:
         raise ValueError(f"--preset {preset!r}: choose one of {', '.join(PRESETS)}")

@@ -1,4 +1,5 @@
-"""Reading checkpoints with one-line errors that name the file and what is wrong.
+"""Checkpoints: written whole beside their target, read with one-line errors that name the file
+and what is wrong.
 
 odmv's checkpoints hold plain data only, so they load with torch's ``weights_only``; a file
 that needs more was written by another program, and torch's advice to turn the check off
@@ -10,6 +11,22 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
+from lightning.fabric.utilities.types import _PATH
+from lightning.pytorch.plugins.io import TorchCheckpointIO
+
+from odmv.io.atomic import write_atomic
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """Lightning's checkpoint writer, writing beside the target and renaming: its own writes a
+    temporary file in /tmp and moves it, which on another file system is a copy that a full
+    disk truncates, leaving half a checkpoint where resume and evaluate look. A full disk is a
+    one-line :class:`odmv.io.atomic.DiskFullError` and the previous checkpoint stays."""
+
+    def save_checkpoint(self, checkpoint: dict, path: _PATH, storage_options=None) -> None:
+        if "://" in str(path):  # a remote store (fsspec) renames nothing: Lightning's own way
+            return super().save_checkpoint(checkpoint, path, storage_options)
+        write_atomic(path, lambda tmp: torch.save(checkpoint, tmp))
 
 
 class CheckpointError(ValueError):

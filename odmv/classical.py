@@ -19,9 +19,10 @@ import torch
 from odmv.data.dataset import DataError, check_spec, load_scene, split_scenes
 from odmv.data.subsets import MASKS
 from odmv.fpp import fuse_views, period_in_camera_px, reconstruct_view
+from odmv.io.atomic import write_json
 from odmv.io.manifest import load_manifest
 from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_suffix
-from odmv.module import subset_masks, write_json, write_test_outputs
+from odmv.module import subset_masks, write_test_outputs
 from odmv.provenance import provenance
 
 #: Settings of the classical pipeline (documented in docs/reproduce.md).

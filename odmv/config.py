@@ -1,14 +1,19 @@
-"""OmegaConf resolvers the configs use; imported by every Hydra entry point."""
+"""Where the configs live, and the OmegaConf resolvers they use; imported by every Hydra
+entry point."""
 
 from __future__ import annotations
 
 import hashlib
 import json
+from pathlib import Path
 
 from omegaconf import ListConfig, OmegaConf
 
 from odmv.data.reference import view_channels as reference_channels
 from odmv.rig import VIEW_SETS, check_views
+
+#: the Hydra config tree every app composes from
+CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
 
 
 def view_list(views) -> ListConfig:

@@ -32,6 +32,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from odmv.cli import run_app
+from odmv.config import CONF_DIR
 from odmv.io.exr import read_exr, write_exr
 from odmv.io.images import find_view_image, read_image
 from odmv.io.manifest import (
@@ -47,7 +48,6 @@ from odmv.io.manifest import (
     fringe_name,
 )
 from odmv.rig import VIEW_NAMES, Rig
-from odmv.simulate import CONF_DIR
 
 FORMATS = ("nguyen2020", "uhrnet", "fppmlbench", "folder")
 #: Placeholder period (projector px) of imports, whose fringe period is not known.

@@ -11,10 +11,9 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
-import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.cli import run_app
+from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.evaluate import evaluate, report
-from odmv.simulate import CONF_DIR
 from odmv.train import train
 
 

@@ -19,13 +19,13 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.cli import run_app, set_threads, task_overrides
+from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.data.dataset import DataError
+from odmv.io.atomic import write_json
 from odmv.io.manifest import MANIFEST
 from odmv.metrics import DepthErrors
-from odmv.module import PREDICTIONS, SCENES_CSV, load_module, net_input, write_json
-from odmv.simulate import CONF_DIR
+from odmv.module import PREDICTIONS, SCENES_CSV, load_module, net_input
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import warnings
 from pathlib import Path
 
@@ -21,12 +20,12 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.cli import run_app
+from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.data.reference import view_channels
+from odmv.io.atomic import write_atomic
 from odmv.module import FPPModule, load_module
 from odmv.rig import size_hw
-from odmv.simulate import CONF_DIR
 
 #: ONNX opset: Conv and ConvTranspose in 3D and 5D linear Resize (trilinear) are all covered.
 OPSET = 18
@@ -103,12 +102,10 @@ def export_onnx(ckpt_path: str | Path, out_dir: str | Path) -> tuple[Path, float
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "model.onnx"
-    tmp = out_dir / f".model.onnx.{os.getpid()}.tmp"
     model = export_graph(wrapper, example)
     entry = model.metadata_props.add()
     entry.key, entry.value = METADATA_KEY, json.dumps(metadata(module, ckpt_path))
-    onnx.save(model, tmp)
-    os.replace(tmp, path)
+    write_atomic(path, lambda tmp: onnx.save(model, str(tmp)))
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     with torch.no_grad():
         ref = wrapper(example).numpy()

@@ -34,13 +34,25 @@ def unwrap_temporal(phases: list[np.ndarray], periods_px: list[float]) -> np.nda
     ``phases`` are wrapped phases ordered like ``periods_px``; the coarsest period must span
     the projector (one period across it), so its phase is already absolute.
     """
+    return unwrap_checked(phases, periods_px)[0]
+
+
+def unwrap_checked(
+    phases: list[np.ndarray], periods_px: list[float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`unwrap_temporal`, and where every pair of consecutive levels agreed within a
+    quarter of the finer period (elsewhere a fringe order is wrong, typically at mixed pixels
+    on edges)."""
     order = np.argsort(periods_px)[::-1]  # coarse to fine
     u = phases[order[0]] / (2 * np.pi) * periods_px[order[0]]
+    agree = np.ones(np.shape(u), bool)
     for i in order[1:]:
         p = periods_px[i]
         k = np.round((2 * np.pi * u / p - phases[i]) / (2 * np.pi))
-        u = (phases[i] + 2 * np.pi * k) / (2 * np.pi) * p
-    return u
+        fine = (phases[i] + 2 * np.pi * k) / (2 * np.pi) * p
+        agree &= np.abs(fine - u) < p / 4
+        u = fine
+    return u, agree
 
 
 def triangulate_depth(u_px: np.ndarray, camera: Camera, projector: Projector) -> np.ndarray:
@@ -82,18 +94,11 @@ def reconstruct_view(
     than a quarter of the finer period (a wrong fringe order, typical of mixed pixels at edges).
     """
     phases, mods = zip(*(wrapped_phase(s) for s in stack), strict=True)
-    order = np.argsort(periods_px)[::-1]  # coarse to fine
-    ok = np.logical_and.reduce([m >= min_modulation for m in mods])
-    u = phases[order[0]] / (2 * np.pi) * periods_px[order[0]]
-    for i in order[1:]:
-        p = periods_px[i]
-        k = np.round((2 * np.pi * u / p - phases[i]) / (2 * np.pi))
-        fine = (phases[i] + 2 * np.pi * k) / (2 * np.pi) * p
-        ok &= np.abs(fine - u) < p / 4
-        u = fine
+    u, ok = unwrap_checked(list(phases), periods_px)
+    ok &= np.logical_and.reduce([m >= min_modulation for m in mods])
     depth = triangulate_depth(u, camera, projector)
     ok &= np.isfinite(depth)
-    return np.where(ok, depth, np.nan), mods[order[-1]]
+    return np.where(ok, depth, np.nan), mods[int(np.argmin(periods_px))]
 
 
 def _nanmedian(a: np.ndarray) -> np.ndarray:

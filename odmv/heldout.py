@@ -18,8 +18,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from odmv.io.atomic import write_json
 from odmv.io.manifest import MANIFEST
-from odmv.module import write_json
 from odmv.sim.writer import SimSettings, simulate
 
 SCENES = 200

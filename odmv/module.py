@@ -7,9 +7,6 @@ from a checkpoint alone (:func:`load_module`).
 
 from __future__ import annotations
 
-import csv
-import json
-import os
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -25,6 +22,7 @@ from lightning.pytorch.utilities import rank_zero_only
 from odmv.checkpoint import CheckpointError, check_weights, read_checkpoint
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import MASKS
+from odmv.io.atomic import write_atomic, write_csv
 from odmv.losses import LossWeights, composite_loss
 from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_results
 
@@ -278,13 +276,6 @@ def subset_masks(batch: dict) -> dict[str, torch.Tensor]:
     return {"all": valid} | {k: batch[k] * valid for k in MASKS}
 
 
-def write_json(path: Path, data: dict) -> None:
-    """Write ``data`` as JSON atomically (a temporary name, then rename)."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=1) + "\n")
-    os.replace(tmp, path)
-
-
 SCENES_CSV = "test_scenes.csv"
 PREDICTIONS = "test_predictions.npz"
 
@@ -303,12 +294,7 @@ def _gather_lists(lists: dict[str, list]) -> dict[str, list]:
 def write_scene_rows(folder: Path, rows: list[dict]) -> None:
     """Per-scene metrics as ``test_scenes.csv``, atomically, in scene order."""
     rows = sorted({r["scene"]: r for r in rows}.values(), key=lambda r: r["scene"])
-    tmp = folder / f".{SCENES_CSV}.{os.getpid()}.tmp"
-    with tmp.open("w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    os.replace(tmp, folder / SCENES_CSV)
+    write_csv(folder / SCENES_CSV, rows)
 
 
 @rank_zero_only
@@ -324,9 +310,12 @@ def write_test_outputs(folder: Path, rows: list[dict], predictions: dict[str, li
         "pred_mm": np.concatenate(predictions["pred_mm"]).astype(np.float32)[order],
         "depth_mm": np.concatenate(predictions["depth_mm"]).astype(np.float32)[order],
     }
-    tmp = folder / f".{PREDICTIONS}.{os.getpid()}.tmp.npz"
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, folder / PREDICTIONS)
+    write_atomic(folder / PREDICTIONS, lambda tmp: _savez(tmp, arrays))
+
+
+def _savez(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    with path.open("wb") as fh:  # a file object: numpy appends no .npz to the name
+        np.savez_compressed(fh, **arrays)
 
 
 def load_module(ckpt_path: str | Path) -> FPPModule:

@@ -29,15 +29,16 @@ import torch
 from omegaconf import DictConfig
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
-import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.calibration import load_calibration
 from odmv.classical import reconstruct_scene
 from odmv.cli import run_app
+from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.data.dataset import DataError, SampleSpec, check_spec, load_scene
 from odmv.data.normalize import Normalization
 from odmv.data.reference import network_input, reference_mode, reference_phase
 from odmv.export import METADATA_KEY, input_shape
 from odmv.fpp import period_in_camera_px
+from odmv.io.atomic import write_atomic, write_bytes
 from odmv.io.exr import write_exr
 from odmv.io.images import IMAGE_EXTENSIONS, find_view_image, fit_to, read_image
 from odmv.io.manifest import (
@@ -50,7 +51,6 @@ from odmv.io.manifest import (
 )
 from odmv.module import load_module
 from odmv.rig import VIEW_NAMES, Camera, Rig
-from odmv.simulate import CONF_DIR
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -191,12 +191,7 @@ def write_ply(path: Path, points: np.ndarray, grey: np.ndarray | None = None) ->
         + "".join(f"property {types[t]} {name}\n" for name, t in fields)
         + "end_header\n"
     )
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        fh.write(rows.tobytes())
-    tmp.replace(path)
-    return path
+    return write_bytes(path, header.encode("ascii") + rows.tobytes())
 
 
 def uniform_grey(scene: Scene, reader: ImageReader, views: list[str], size) -> np.ndarray | None:
@@ -292,11 +287,10 @@ def write_preview(path: Path, depth_mm: np.ndarray) -> Path:
     """A colour-mapped PNG of the depth (near = bright), written atomically."""
     finite = depth_mm[np.isfinite(depth_mm)]
     lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
-    tmp = path.with_name(f".{path.name}.tmp")
     shown = np.nan_to_num(depth_mm, nan=hi)
-    plt.imsave(tmp, shown, cmap="viridis_r", vmin=lo, vmax=hi, format="png")
-    tmp.replace(path)
-    return path
+    return write_atomic(
+        path, lambda tmp: plt.imsave(tmp, shown, cmap="viridis_r", vmin=lo, vmax=hi, format="png")
+    )
 
 
 def predict(cfg: DictConfig) -> list[dict[str, Path]]:

@@ -23,9 +23,10 @@ import numpy as np
 from omegaconf import DictConfig
 
 from odmv.cli import run_app
+from odmv.config import CONF_DIR
 from odmv.heldout import HELDOUT
+from odmv.io.atomic import write_csv, write_text
 from odmv.module import PREDICTIONS, SCENES_CSV
-from odmv.simulate import CONF_DIR
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -445,17 +446,7 @@ def table_csv(path: Path, cells: list[Cell]) -> None:
         for i, m in enumerate(METRICS):
             r[f"paper_{m}"] = c.row.paper[i] if c.row.paper else ""
         rows.append(r)
-    _write_csv(path, rows)
-
-
-def _write_csv(path: Path, rows: list[dict]) -> None:
-    fields = list(dict.fromkeys(k for r in rows for k in r))
-    tmp = path.with_name(f".{path.name}.tmp")
-    with tmp.open("w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=fields, restval="")
-        w.writeheader()
-        w.writerows(rows)
-    tmp.replace(path)
+    write_csv(path, rows)
 
 
 # ----------------------------------------------------------------------------- header
@@ -477,7 +468,11 @@ def _recorded(runs: list[Run], key: str) -> str:
     ordered = sorted(counts, key=lambda v: (-counts[v], v))
     if len(ordered) == 1:
         return ordered[0]
-    return "; ".join(f"{v} ({counts[v]} runs)" for v in ordered)
+    return "; ".join(f"{v} ({_runs(counts[v])})" for v in ordered)
+
+
+def _runs(n: int) -> str:
+    return f"{n} run" + ("" if n == 1 else "s")
 
 
 def _dates(runs: list[Run]) -> str:
@@ -486,7 +481,7 @@ def _dates(runs: list[Run]) -> str:
         return "unknown"
     span = dates[0] if dates[0] == dates[-1] else f"{dates[0]} to {dates[-1]}"
     missing = len(runs) - len(dates)
-    return span + (f" ({missing} runs unrecorded)" if missing else "")
+    return span + (f" ({_runs(missing)} unrecorded)" if missing else "")
 
 
 def _dataset_line(runs: list[Run]) -> str:
@@ -707,7 +702,7 @@ def write_report(
         lines += [f"- `{_relative(p)}`" for p in pending]
         lines.append("")
     lines += ["### Every run", "", "See `runs.csv` (one line per run and seed)."]
-    _write_csv(
+    write_csv(
         out / "runs.csv",
         [
             {
@@ -723,10 +718,7 @@ def write_report(
             for r in runs
         ],
     )
-    tmp = out / ".tables.md.tmp"
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(out / "tables.md")
-    return out / "tables.md"
+    return write_text(out / "tables.md", "\n".join(lines) + "\n")
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="report")

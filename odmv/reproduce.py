@@ -34,14 +34,13 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig, OmegaConf
 
-import odmv.config  # noqa: F401  (registers the config resolvers)
 from odmv.classical import classical_row
 from odmv.cli import run_app
+from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.heldout import HELDOUT, HeldoutError, score_heldout
 from odmv.losses import OPTIONAL_TERMS
 from odmv.module import PREDICTIONS, SCENES_CSV
 from odmv.report import FIGURE_SCENES, Run, pick_scenes, write_report
-from odmv.simulate import CONF_DIR
 
 CLASSICAL_DIR = "classical"
 RECORD = "reproduce.json"  # per row: the overrides that trained it and their key

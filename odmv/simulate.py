@@ -6,16 +6,14 @@ A thin Hydra wrapper around :func:`odmv.sim.writer.simulate`; settings in conf/s
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from odmv.cli import run_app
+from odmv.config import CONF_DIR
 from odmv.sim.writer import SimSettings, simulate
 from odmv.validate import validate
-
-CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
 
 
 def settings_from_config(cfg: DictConfig) -> SimSettings:

@@ -14,6 +14,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from odmv.cli import JobFailed
+from odmv.io.atomic import write_csv
 
 RESULTS = "results.csv"
 
@@ -25,13 +26,7 @@ def append_row(path: Path, row: dict) -> None:
         fcntl.flock(lock, fcntl.LOCK_EX)
         rows = list(csv.DictReader(path.open())) if path.exists() else []
         rows.append({k: "" if v is None else v for k, v in row.items()})
-        fields = list(dict.fromkeys(k for r in rows for k in r))
-        tmp = path.with_suffix(".tmp")
-        with tmp.open("w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=fields, restval="")
-            w.writeheader()
-            w.writerows(rows)
-        tmp.replace(path)
+        write_csv(path, rows)
 
 
 class CollectResults(Callback):

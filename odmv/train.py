@@ -15,8 +15,7 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-import odmv.config  # noqa: F401  (registers the config resolvers)
-from odmv.checkpoint import check_fits, check_weights, read_checkpoint
+from odmv.checkpoint import AtomicCheckpointIO, check_fits, check_weights, read_checkpoint
 from odmv.cli import (
     JobFailed,
     in_multirun,
@@ -26,10 +25,11 @@ from odmv.cli import (
     set_threads,
     task_overrides,
 )
+from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.ema import WeightEMA
-from odmv.module import FPPModule, write_json
+from odmv.io.atomic import write_json
+from odmv.module import FPPModule
 from odmv.provenance import provenance
-from odmv.simulate import CONF_DIR
 from odmv.sweep import append_row
 
 
@@ -81,7 +81,9 @@ def build(cfg: DictConfig):
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()]
     if cfg.get("ema") is not None:
         callbacks.append(WeightEMA(cfg.ema))
-    trainer = hydra.utils.instantiate(cfg.trainer, logger=loggers or False, callbacks=callbacks)
+    trainer = hydra.utils.instantiate(
+        cfg.trainer, logger=loggers or False, callbacks=callbacks, plugins=[AtomicCheckpointIO()]
+    )
     return dm, module, trainer
 
 

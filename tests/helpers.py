@@ -3,11 +3,11 @@
 import numpy as np
 from hydra import compose, initialize_config_dir
 
+from odmv.config import CONF_DIR
 from odmv.io.manifest import FringeSpec
 from odmv.rig import VIEW_NAMES, Rig
 from odmv.sim.render import RenderConfig, render_scene
 from odmv.sim.scenes import build_scene
-from odmv.simulate import CONF_DIR
 
 RIG = Rig()
 CLEAN = RenderConfig(full_well_e=0.0, read_noise=0.0)  # noise-free

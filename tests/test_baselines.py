@@ -2,9 +2,9 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from odmv.config import CONF_DIR
 from odmv.losses import OPTIONAL_TERMS, LossWeights, composite_loss
 from odmv.models import HNet, MTLNet, UHRNet, UNet, count_parameters
-from odmv.simulate import CONF_DIR
 from odmv.train import train
 
 PUBLISHED = {UNet: 8.6e6, HNet: 8.63e6, UHRNet: 30.3e6}

@@ -7,10 +7,10 @@ import torch
 from hydra import compose, initialize_config_dir
 
 import odmv.config  # noqa: F401  (registers the resolvers the configs use)
+from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.data import DataError, FPPDataModule
 from odmv.io.exr import read_channel, write_exr
 from odmv.rig import VIEW_SETS
-from odmv.simulate import CONF_DIR
 
 
 def _dm(root, tmp_path, **kw):

@@ -7,13 +7,13 @@ import torch
 from helpers import RIG, render
 from hydra import compose, initialize_config_dir
 
+from odmv.config import CONF_DIR
 from odmv.data import FPPDataModule
 from odmv.data.reference import network_input, reference_mode, reference_phase
 from odmv.io.exr import read_channel
 from odmv.module import load_module
 from odmv.predict import predict
 from odmv.rig import VIEW_NAMES
-from odmv.simulate import CONF_DIR
 from odmv.train import train
 
 

@@ -298,3 +298,53 @@ def test_a_corrupt_mesh_leaves_nothing_behind(tmp_path):
     with pytest.raises(SceneError, match=r"noise.stl: cannot read mesh"):
         simulate(s, workers=1, progress=False)
     assert not out.exists()
+
+
+# ---------------------------------------------------------------- a full disk
+def _fills_the_disk_after(nbytes):
+    """A writer that writes ``nbytes`` of its file, then finds the disk full."""
+
+    def write(tmp: Path) -> None:
+        tmp.write_bytes(b"x" * nbytes)
+        raise OSError(28, "No space left on device", str(tmp))
+
+    return write
+
+
+def test_a_full_disk_leaves_the_old_file_and_no_temporary_one(tmp_path):
+    from odmv.io.atomic import DiskFullError, write_atomic, write_text
+
+    target = write_text(tmp_path / "metrics.json", '{"old": 1}\n')
+    with pytest.raises(DiskFullError) as info:
+        write_atomic(target, _fills_the_disk_after(3 * 2**20))
+    message = str(info.value)
+    assert message.startswith(f"{target}: no space left on {tmp_path}") and "\n" not in message
+    assert "wrote 3.0 MiB" in message
+    assert target.read_text() == '{"old": 1}\n'  # untouched
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["metrics.json"]  # no leftovers
+
+
+def test_training_on_a_full_disk_stops_with_one_line_and_no_half_checkpoint(
+    tiny_dataset, tmp_path, monkeypatch
+):
+    import odmv.checkpoint
+
+    real_save = torch.save
+    saved = []
+
+    def save(obj, f, *a, **kw):  # the second checkpoint finds the disk full
+        if len(saved) == 1:
+            return _fills_the_disk_after(1000)(Path(f))
+        saved.append(f)
+        return real_save(obj, f, *a, **kw)
+
+    monkeypatch.setattr(odmv.checkpoint.torch, "save", save)
+    cfg = compose_config("train", tiny_overrides(tiny_dataset, tmp_path / "run"))
+    with pytest.raises(ValueError, match="no space left on") as info:
+        train(cfg)
+    assert "checkpoints" in str(info.value) and "\n" not in str(info.value)
+    monkeypatch.setattr(odmv.checkpoint.torch, "save", real_save)
+    # the one checkpoint written is whole; nothing half-written lies beside it
+    files = sorted((tmp_path / "run" / "checkpoints").iterdir())
+    assert len(files) == 1 and not files[0].name.startswith(".")
+    assert load_module(files[0]) is not None

@@ -15,6 +15,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from odmv.classical import classical_row
+from odmv.config import CONF_DIR
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import footprint_from_depth, subset_masks
 from odmv.heldout import HELDOUT
@@ -29,7 +30,6 @@ from odmv.reproduce import (
     trained_key,
 )
 from odmv.rig import VIEW_NAMES
-from odmv.simulate import CONF_DIR
 
 
 def test_depth_in_mm_under_bf16_autocast_matches_float32():

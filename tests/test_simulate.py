@@ -13,11 +13,12 @@ import pytest
 import trimesh
 from hydra import compose, initialize_config_dir
 
+from odmv.config import CONF_DIR
 from odmv.io.exr import read_channel
 from odmv.io.manifest import load_manifest
 from odmv.sim.scenes import SceneError
 from odmv.sim.writer import SimulationError, rerender
-from odmv.simulate import CONF_DIR, run
+from odmv.simulate import run
 from odmv.validate import validate
 
 SMALL = ["resolution=64", "progress=false", "workers=1"]
@@ -132,3 +133,17 @@ def test_mesh_folder_is_used_and_bad_mesh_named(tmp_path):
     with pytest.raises(SceneError, match="broken.stl: cannot read mesh") as e:
         run(_cfg(tmp_path / "bad", "scenes=8", "family=freeform", f"mesh_dir={meshes}"))
     assert "\n" not in str(e.value)
+
+
+def test_the_simulate_config_states_the_simulators_own_defaults():
+    # python -m odmv.simulate and code that builds SimSettings render the same dataset when
+    # nothing is set: conf/simulate.yaml repeats the defaults, and this keeps them one
+    from omegaconf import OmegaConf
+
+    from odmv.sim.writer import SimSettings
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose("simulate")
+    from_yaml = SimSettings.from_dict(OmegaConf.to_container(cfg, resolve=True))
+    assert from_yaml == SimSettings(out=Path(cfg.out))
+    assert from_yaml.scenes == 252  # the paper's dataset

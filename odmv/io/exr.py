@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
+from odmv.io.atomic import write_atomic
+
 _MAGIC = b"\x76\x2f\x31\x01"
 
 COMPRESSIONS = {
@@ -66,15 +68,12 @@ def write_exr(
         data[name] = np.ascontiguousarray(arr).copy()
     header = {"compression": COMPRESSIONS[compression], "type": OpenEXR.scanlineimage}
     header.update(dict(attributes or {}))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
+
+    def write(tmp: Path) -> None:
         with OpenEXR.File(header, data) as f:
             f.write(str(tmp))
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+
+    return write_atomic(path, write)
 
 
 def _open(path: Path, header_only: bool) -> OpenEXR.File:

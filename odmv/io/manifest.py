@@ -11,6 +11,7 @@ import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from odmv.io.atomic import write_json
 from odmv.rig import VIEW_NAMES, Rig
 
 FORMAT = "odmv-fpp-dataset"
@@ -140,12 +141,7 @@ class Manifest:
 
     def write(self) -> Path:
         """Write ``manifest.json`` atomically."""
-        path = self.root / MANIFEST
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{MANIFEST}.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(self.to_json(), indent=1) + "\n")
-        os.replace(tmp, path)
-        return path
+        return write_json(self.root / MANIFEST, self.to_json())
 
 
 def _require(d: dict, key: str, kind: type | tuple, path: Path):

@@ -53,7 +53,7 @@ class SimSettings:
     """Everything that determines a dataset's content (stored in the manifest)."""
 
     out: Path
-    scenes: int = 100
+    scenes: int = 252  # the paper's dataset size, as conf/simulate.yaml
     family: str = "mix"
     height_px: int = 480
     width_px: int = 480

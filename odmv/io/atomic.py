@@ -1,0 +1,81 @@
+"""Files written whole or not at all: every file the project writes goes through here.
+
+The temporary file lies beside the target, in the same folder and so on the same file system,
+and replaces it by a rename only once it is complete: a reader never sees half a file, and a
+failure (a full disk, a killed process) leaves the old target as it was. A temporary file in
+/tmp would be copied, not renamed, onto another file system, which truncates the target when
+that disk is full.
+"""
+
+from __future__ import annotations
+
+import csv
+import errno
+import json
+import os
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+#: errors that mean the target's file system has no room for it
+_FULL = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
+
+
+class DiskFullError(ValueError):
+    """No room to write a file; the message is one line naming the file, the folder and what
+    it needed (a ValueError: every app reports it in one line, odmv.cli)."""
+
+
+def temporary(path: Path) -> Path:
+    """The name a file is written under before it replaces ``path``."""
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+
+
+def write_atomic(path: str | os.PathLike, write: Callable[[Path], object]) -> Path:
+    """Create or replace ``path`` with what ``write(tmp)`` writes into the temporary path
+    beside it; returns ``path``. On a full disk raises :class:`DiskFullError`; on any error the
+    temporary file is gone and an existing ``path`` is untouched."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary(path)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except OSError as e:
+        if e.errno in _FULL:
+            size = tmp.stat().st_size if tmp.exists() else 0
+            free = shutil.disk_usage(path.parent).free
+            raise DiskFullError(
+                f"{path}: no space left on {path.parent} (wrote {size / 2**20:.1f} MiB before it "
+                f"ran out, {free / 2**20:.1f} MiB free); nothing was replaced",
+            ) from None
+        raise
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    return write_atomic(path, lambda tmp: tmp.write_text(text))
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    return write_atomic(path, lambda tmp: tmp.write_bytes(data))
+
+
+def write_json(path: str | os.PathLike, data: dict) -> Path:
+    return write_text(path, json.dumps(data, indent=1) + "\n")
+
+
+def write_csv(path: str | os.PathLike, rows: list[dict]) -> Path:
+    """``rows`` as CSV, the header every key of any row in first-seen order (blank where a row
+    lacks one)."""
+    fields = list(dict.fromkeys(k for r in rows for k in r))
+
+    def write(tmp: Path) -> None:
+        with tmp.open("w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=fields, restval="")
+            w.writeheader()
+            w.writerows(rows)
+
+    return write_atomic(path, write)
