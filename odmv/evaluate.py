@@ -26,6 +26,7 @@ from odmv.io.atomic import write_json
 from odmv.io.manifest import MANIFEST
 from odmv.metrics import DepthErrors
 from odmv.module import PREDICTIONS, SCENES_CSV, load_module, net_input
+from odmv.study.records import read_only
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -39,12 +40,6 @@ def constant_predictor_errors(dm, value_mm: float) -> dict[str, float]:
             torch.full_like(batch["depth_mm"], value_mm), batch["depth_mm"], batch["valid"]
         )
     return {k: float(v) for k, v in metric.compute().items() if k != "pixels"}
-
-
-def read_only(data: dict, **changes) -> dict:
-    """A saved data config (a checkpoint's) that reads its dataset and never renders one, with
-    ``changes`` on top."""
-    return {**data, "progress": False, "render": False, "simulate": None, **changes}
 
 
 def constant_depth_mm(saved: dict, dm) -> float | None:

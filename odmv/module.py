@@ -22,7 +22,7 @@ from lightning.pytorch.utilities import rank_zero_only
 from odmv.checkpoint import CheckpointError, check_weights, read_checkpoint
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import MASKS
-from odmv.io.atomic import write_atomic, write_csv
+from odmv.io.atomic import write_csv, write_npz
 from odmv.losses import LossWeights, composite_loss
 from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_results
 
@@ -310,12 +310,7 @@ def write_test_outputs(folder: Path, rows: list[dict], predictions: dict[str, li
         "pred_mm": np.concatenate(predictions["pred_mm"]).astype(np.float32)[order],
         "depth_mm": np.concatenate(predictions["depth_mm"]).astype(np.float32)[order],
     }
-    write_atomic(folder / PREDICTIONS, lambda tmp: _savez(tmp, arrays))
-
-
-def _savez(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    with path.open("wb") as fh:  # a file object: numpy appends no .npz to the name
-        np.savez_compressed(fh, **arrays)
+    write_npz(folder / PREDICTIONS, arrays)
 
 
 def load_module(ckpt_path: str | Path) -> FPPModule:

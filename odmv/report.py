@@ -24,9 +24,9 @@ from omegaconf import DictConfig
 
 from odmv.cli import run_app
 from odmv.config import CONF_DIR
-from odmv.heldout import HELDOUT
 from odmv.io.atomic import write_csv, write_text
 from odmv.module import PREDICTIONS, SCENES_CSV
+from odmv.study.records import HELDOUT
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -37,7 +37,7 @@ METRICS = ("mae_mm", "mse_mm2", "rmse_mm")
 #: records lack them
 FIRST_VIEW = {"first_unlit": "first-unlit", "first_shadowed": "first-shadowed"}
 FIGURE_SCENES = 3  # test scenes in Fig. 6 and 7: one per scene family
-#: the held-out set's columns (odmv.heldout): every pixel, then the subsets as named above
+#: the held-out set's columns (odmv.study.heldout): every pixel, then the subsets as named above
 HELDOUT_SUBSETS = {"all": "", "shadowed": "shadowed"} | FIRST_VIEW
 SPLITS = {"test": "test split", "heldout": "held-out"}  # where a claim is judged
 
@@ -176,7 +176,7 @@ def find_runs(paths: list[Path]) -> tuple[list[Run], list[Path]]:
 
 
 def _heldout(folder: Path) -> dict:
-    """A run's held-out scores (odmv.heldout) as ``heldout/...`` metrics; none where it was
+    """A run's held-out scores (odmv.study.heldout) as ``heldout/...`` metrics; none where it was
     not scored."""
     path = folder / HELDOUT
     if not path.is_file():
@@ -669,7 +669,7 @@ def write_report(
         "row) leaves unlit and another lights, where only more views add fringes; most lie "
         "outside its footprint, a band of the field. `first-shadowed`: those inside its "
         "footprint, hidden by occlusion. `–`: the row's records predate those two. held-out: the "
-        "same MAE over 200 fresh scenes of the same twin (odmv.heldout; `–`: the row was not "
+        "same MAE over 200 fresh scenes of the same twin (odmv.study.heldout; `–`: the row was not "
         "scored there). epochs and "
         "threads: each seed's epochs trained and torch thread count, in seed order (`?`: not "
         "recorded; `(differ)`: the seeds ran on other counts); runs of one configuration with "

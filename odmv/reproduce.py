@@ -37,10 +37,11 @@ from omegaconf import DictConfig, OmegaConf
 from odmv.classical import classical_row
 from odmv.cli import run_app
 from odmv.config import CONF_DIR  # (and registers the config resolvers)
-from odmv.heldout import HELDOUT, HeldoutError, score_heldout
 from odmv.losses import OPTIONAL_TERMS
 from odmv.module import PREDICTIONS, SCENES_CSV
 from odmv.report import FIGURE_SCENES, Run, pick_scenes, write_report
+from odmv.study.heldout import HeldoutError, score_heldout
+from odmv.study.records import HELDOUT
 
 CLASSICAL_DIR = "classical"
 RECORD = "reproduce.json"  # per row: the overrides that trained it and their key

@@ -18,7 +18,6 @@ from odmv.classical import classical_row
 from odmv.config import CONF_DIR
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import footprint_from_depth, subset_masks
-from odmv.heldout import HELDOUT
 from odmv.module import FPPModule
 from odmv.reproduce import (
     RECORD,
@@ -30,6 +29,7 @@ from odmv.reproduce import (
     trained_key,
 )
 from odmv.rig import VIEW_NAMES
+from odmv.study.records import HELDOUT
 
 
 def test_depth_in_mm_under_bf16_autocast_matches_float32():

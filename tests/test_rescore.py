@@ -1,14 +1,12 @@
 import csv
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parents[1] / "experiments"))
-import rescore  # noqa: E402  (a script of experiments/, not a package)
+from odmv.study import rescore
 
 NEW = ("first_unlit", "first_shadowed")
 

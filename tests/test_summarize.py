@@ -1,9 +1,6 @@
 import shutil
-import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).parents[1] / "experiments"))
-import summarize  # noqa: E402  (a script of experiments/, not a package)
+from odmv.study import summarize
 
 
 def test_summarize_scores_a_run_and_a_record_that_kept_only_its_metrics(trained, tmp_path, capsys):

@@ -1,13 +1,8 @@
-import sys
-from pathlib import Path
-
 import numpy as np
 
 from odmv.data.dataset import check_spec, load_scene, split_scenes
 from odmv.io.manifest import load_manifest
-
-sys.path.insert(0, str(Path(__file__).parents[1] / "experiments"))
-import view_coverage  # noqa: E402  (a script of experiments/, not a package)
+from odmv.study import coverage as view_coverage
 
 
 def test_one_view_misses_the_first_view_subsets_and_four_views_miss_nothing(tiny_dataset):

@@ -4,7 +4,7 @@ The four projectors are one unit turned about the camera axis by multiples of 90
 the camera's field is square and centred on that axis. A scene turned by +90 degrees about the
 axis therefore images, under projector ``NEXT[v]``, as the original scene under projector ``v``
 with the image turned by +90 degrees (``torch.rot90`` on rows and columns: world +x, image
-right, goes to world +y, image up). ``experiments/symmetry_check.py`` renders scenes and their
+right, goes to world +y, image up). ``python -m odmv.study symmetry`` renders scenes and their
 turned copies to measure how exact this is on a given rig (exact to float rounding without the
 camera's tangential distortion; the twin's default lens breaks it by at most 0.018 mm of
 depth and 0.10 of full-scale intensity, at edges, on 12 scenes of the mini dataset).

@@ -67,6 +67,17 @@ def write_json(path: str | os.PathLike, data: dict) -> Path:
     return write_text(path, json.dumps(data, indent=1) + "\n")
 
 
+def write_npz(path: str | os.PathLike, arrays: dict) -> Path:
+    """Named arrays as a compressed ``.npz`` (through a file object: numpy appends no suffix)."""
+    import numpy as np
+
+    def write(tmp: Path) -> None:
+        with tmp.open("wb") as fh:
+            np.savez_compressed(fh, **arrays)
+
+    return write_atomic(path, write)
+
+
 def write_csv(path: str | os.PathLike, rows: list[dict]) -> Path:
     """``rows`` as CSV, the header every key of any row in first-seen order (blank where a row
     lacks one)."""

@@ -1,6 +1,6 @@
 """Where each view set of the view-count experiment has a fringe, on one split of a dataset.
 
-    python experiments/view_coverage.py data/synthetic-200x64px-4609dd24 [--split test]
+    python -m odmv.study coverage data/synthetic-200x64px-4609dd24 [--split test]
 
 For each view set of odmv.rig.VIEW_SETS, the share of the valid pixels (finite depth) that some
 projector lights but none of the set's views does: the pixels where adding views can bring a
@@ -48,11 +48,11 @@ def coverage(root: str, split: str) -> tuple[int, dict[int, np.ndarray]]:
     return len(ids), counts
 
 
-def main() -> None:
+def main(argv: list[str]) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("dataset")
     ap.add_argument("--split", default="test", choices=("train", "val", "test"))
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     try:
         n, counts = coverage(args.dataset, args.split)
     except (ManifestError, ExrError, FileNotFoundError) as e:
@@ -64,7 +64,3 @@ def main() -> None:
         valid, inside, outside = counts[s]
         share = [100 * x / max(valid, 1) for x in (inside + outside, inside, outside)]
         print(f"| S={s} ({', '.join(views)}) | " + " | ".join(f"{x:.1f}" for x in share) + " |")
-
-
-if __name__ == "__main__":
-    main()

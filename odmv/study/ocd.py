@@ -2,7 +2,7 @@
 views? Compares each OCD mask and each fusion's blend weights with the simulator's lit masks on
 a checkpoint's test split.
 
-    python experiments/ocd_masks.py CKPT [CKPT ...]
+    python -m odmv.study ocd CKPT [CKPT ...]
 
 Prints, per checkpoint and decoder level (0 = full resolution), the mean mask value on pixels a
 projector lights and on pixels it does not, and the ROC AUC of the mask as a lit/unlit detector
@@ -15,17 +15,16 @@ a lit and of an unlit view and the weights' AUC as a lit/unlit detector.
 from __future__ import annotations
 
 import argparse
-import sys
 
 import hydra
 import numpy as np
 import torch
 
 from odmv.checkpoint import CheckpointError
-from odmv.evaluate import read_only
 from odmv.losses import resize_target
 from odmv.models.blocks import OcclusionAwareFusion
 from odmv.module import load_module, net_input
+from odmv.study.records import read_only
 
 HEADS = ("Main", "Aux1", "Aux2")
 
@@ -111,7 +110,3 @@ def main(argv: list[str]) -> int:
         for head, pairs in weights.items():
             print(f"  {HEADS[head]} fusion: {blend_summary(pairs)}")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))

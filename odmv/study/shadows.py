@@ -1,6 +1,6 @@
 """Test MAE on the shadowed pixels, split by what the first view sees there and by height.
 
-    python experiments/shadow_errors.py 'S4=outputs/accuracy/s4-w16-l1-seed*' ...
+    python -m odmv.study shadows 'S4=outputs/accuracy/s4-w16-l1-seed*' ...
 
 A shadowed pixel (odmv.data.subsets) lies in some projector's footprint but is unlit by one
 that covers it. For a net that sees only the first view (right), the pixels that view does
@@ -18,9 +18,9 @@ import json
 from pathlib import Path
 
 import numpy as np
-from height_errors import BANDS_MM, load_predictions
-from split_predictions import run_data  # this folder's sibling scripts
-from summarize import run_groups
+
+from odmv.study.heights import BANDS_MM
+from odmv.study.records import load_predictions, run_data, run_groups
 
 
 def test_masks(run: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -49,10 +49,10 @@ def shadow_row(run: Path, masks: dict) -> list[float]:
     return row + [mae(shadowed & lit), mae(shadowed & ~lit), mae(shadowed)]
 
 
-def main() -> None:
+def main(argv: list[str]) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("groups", nargs="+", metavar="LABEL=GLOB")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     bands = [
         f"{lo:g}-{hi:g} mm" if np.isfinite(hi) else f"> {lo:g} mm"
         for lo, hi in zip(BANDS_MM[:-1], BANDS_MM[1:], strict=True)
@@ -74,7 +74,3 @@ def main() -> None:
         rows = np.array(rows)
         cells = [f"{np.nanmean(c):.3f}" if np.isfinite(c).any() else "–" for c in rows.T]
         print(f"| {label} | {len(folders)} | " + " | ".join(cells) + " |")
-
-
-if __name__ == "__main__":
-    main()

@@ -1,6 +1,6 @@
 """How exact the rig's quarter-turn symmetry is (the premise of ``data.augment=rot90``).
 
-    python experiments/symmetry_check.py data/synthetic-200x64px-4609dd24 --scenes 12
+    python -m odmv.study symmetry data/synthetic-200x64px-4609dd24 --scenes 12
 
 Renders stored scenes of a synthetic dataset again, noise-free, with the dataset's rig and
 fringes, once as they are and once turned by +90 degrees about the camera axis, and compares
@@ -44,13 +44,13 @@ def differences(scene: Scene, rig, m, cfg: RenderConfig) -> tuple[float, float, 
     return depth, fringe, lit
 
 
-def main() -> None:
+def main(argv: list[str]) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("root", help="a dataset folder written by odmv.simulate")
     ap.add_argument(
         "--scenes", type=int, default=12, help="how many of its scenes (from the first)"
     )
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     try:
         m = load_manifest(args.root)
     except ManifestError as e:
@@ -78,7 +78,3 @@ def main() -> None:
             d, f, lit = differences(scene, rig, m, cfg)
             cells += [f"{d:.1e}", f"{f:.1e}", f"{lit * 100:.2f}"]
         print(f"| {s['id']} | {s.get('family', '')} | " + " | ".join(cells) + " |")
-
-
-if __name__ == "__main__":
-    main()

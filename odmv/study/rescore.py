@@ -1,6 +1,6 @@
 """Score finished runs with today's metrics, from their saved test predictions.
 
-    python experiments/rescore.py outputs/reproduce/mini/odmvnet-s1-multitask-seed1 ...
+    python -m odmv.study rescore outputs/reproduce/mini/odmvnet-s1-multitask-seed1 ...
 
 A run's test_predictions.npz holds its prediction (mm) of every test scene, so a metric added
 after it was trained (a pixel subset such as first_unlit) follows from those predictions and
@@ -22,11 +22,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from split_predictions import run_data  # this folder's sibling script
 
 from odmv.io.atomic import write_json
 from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_results
 from odmv.module import PREDICTIONS, SCENES_CSV, subset_masks, write_scene_rows
+from odmv.study.records import run_data
 
 
 def rescore(run: Path) -> list[str]:
@@ -72,13 +72,9 @@ def rescore(run: Path) -> list[str]:
     return added
 
 
-def main() -> None:
+def main(argv: list[str]) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("runs", nargs="+", type=Path, help="finished run folders")
-    for run in ap.parse_args().runs:
+    for run in ap.parse_args(argv).runs:
         added = rescore(run)
         print(f"{run}: " + (f"added {', '.join(added)}" if added else "nothing to add"))
-
-
-if __name__ == "__main__":
-    main()

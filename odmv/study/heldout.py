@@ -1,4 +1,4 @@
-"""The held-out set of a run's dataset, and a run scored on it.
+"""Score finished runs on 200 held-out scenes of their own twin (the held-out set).
 
 A mini protocol's test split has 20 scenes, and two of them (a 12.6 mm capacitor whose fringe
 order a net gets right or not) move a run's test MAE by about 0.02 mm: as much as the levers
@@ -8,10 +8,14 @@ seed 1: scene ``i`` is drawn from the seed sequence ``[1, i]``, disjoint from th
 scenes' ``[0, i]``), all labelled test. It is rendered once beside the dataset. A run's best
 checkpoint is scored on it with ``python -m odmv.evaluate``; its metrics go to ``heldout.json``
 in the run folder (the constant predictor there is the run's own mean training depth).
+
+    python -m odmv.study heldout 'outputs/accuracy/s4-*-seed*' [--threads 2]
 """
 
 from __future__ import annotations
 
+import argparse
+import glob
 import json
 import shutil
 import subprocess
@@ -21,9 +25,9 @@ from pathlib import Path
 from odmv.io.atomic import write_json
 from odmv.io.manifest import MANIFEST
 from odmv.sim.writer import SimSettings, simulate
+from odmv.study.records import HELDOUT, best_checkpoint
 
 SCENES = 200
-HELDOUT = "heldout.json"  # a run's held-out metrics, beside its metrics.json
 
 
 class HeldoutError(ValueError):
@@ -64,19 +68,6 @@ def heldout_dataset(source: Path, scenes: int = SCENES) -> Path:
     return out
 
 
-def best_checkpoint(run: Path) -> tuple[Path, dict]:
-    """A finished run's best checkpoint (found beside it where the run folder was moved) and
-    its metrics.json."""
-    path = run / "metrics.json"
-    if not path.is_file():
-        raise HeldoutError(f"{run}: no metrics.json (not a finished run)")
-    metrics = json.loads(path.read_text())
-    ckpt = Path(metrics["best_checkpoint"])
-    if not ckpt.is_file():
-        ckpt = run / "checkpoints" / ckpt.name  # the run folder was moved
-    return ckpt, metrics
-
-
 def score_heldout(run: Path, threads: int | None = None, scenes: int = SCENES) -> dict:
     """Score ``run``'s best checkpoint on its dataset's held-out set of ``scenes`` scenes
     (rendered on first use) and write the metrics to ``run/heldout.json``; returns them.
@@ -107,3 +98,29 @@ def score_heldout(run: Path, threads: int | None = None, scenes: int = SCENES) -
     write_json(run / HELDOUT, held)
     shutil.rmtree(scratch, ignore_errors=True)
     return held
+
+
+def main(argv: list[str]) -> None:
+    """Score finished runs on their dataset's held-out set (each run's heldout.json, skipped
+    where it exists) and print it beside the test split."""
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("runs", nargs="+", help="globs of run folders holding metrics.json")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    ap.add_argument("--scenes", type=int, default=SCENES, help="held-out scenes")
+    args = ap.parse_args(argv)
+    runs = sorted({Path(r) for g in args.runs for r in glob.glob(g)})
+    runs = [r for r in runs if (r / "metrics.json").is_file()]
+    if not runs:
+        raise SystemExit(f"error: no finished runs match {args.runs}")
+    for run in runs:
+        held = (
+            json.loads((run / HELDOUT).read_text())
+            if (run / HELDOUT).is_file()
+            else score_heldout(run, args.threads, args.scenes)
+        )
+        test = json.loads((run / "metrics.json").read_text())["test/mae_mm"]
+        print(
+            f"{run}: held-out MAE {held['test/mae_mm']:.4f} mm (shadowed "
+            f"{held['test/mae_mm_shadowed']:.4f}), test split {test:.4f} mm",
+            flush=True,
+        )

@@ -2,8 +2,8 @@
 # Accuracy levers on the mini protocol (experiments/results/accuracy/notebook.md): one run per variant and seed, each
 # `python -m odmv.train experiment=$EXP <overrides> seed=<k>` into outputs/accuracy/<variant>-seed<k>
 # (EXP: mini unless a round says otherwise).
-# Usage: bash experiments/accuracy.sh [round1|round2 ...] (default: the latest round).
-# Resumable: a run whose metrics.json exists is skipped. Summarize with experiments/summarize.py.
+# Usage: bash experiments/results/accuracy/rounds.sh [round1|round2 ...] (default: the latest round).
+# Resumable: a run whose metrics.json exists is skipped. Summarize with python -m odmv.study summarize.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}

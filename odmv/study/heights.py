@@ -1,6 +1,6 @@
 """Test MAE by height above the base plane: where in depth the error of finished runs lies.
 
-    python experiments/height_errors.py 'UNet=outputs/reproduce/mini/unet-s1-seed*' ...
+    python -m odmv.study heights 'UNet=outputs/reproduce/mini/unet-s1-seed*' ...
 
 Each argument is ``LABEL=GLOB`` (run folders holding test_predictions.npz, or --file).
 Heights are in mm above the base plane, the largest ground-truth depth of the split (the plane
@@ -8,7 +8,7 @@ is the farthest surface the camera sees). Prints a markdown table: the share of 
 in each height band, then per label the scenes each run's file holds (a committed reproduction
 record keeps only its figure scenes) and the MAE in each band, mean ± std over the matched runs.
 
-    python experiments/height_errors.py --tall 8 'UNet=outputs/reproduce/mini/unet-s1-seed*'
+    python -m odmv.study heights --tall 8 'UNet=outputs/reproduce/mini/unet-s1-seed*'
 
 adds, per test scene with pixels higher than 8 mm, how many there are and the mean true and
 predicted height there (mean over each label's runs): which parts the tall-band error is.
@@ -17,18 +17,12 @@ predicted height there (mean over each label's runs): which parts the tall-band 
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import numpy as np
-from summarize import run_groups  # this folder's sibling script: the same LABEL=GLOB rule
+
+from odmv.study.records import load_predictions, run_groups
 
 BANDS_MM = [0.0, 0.5, 2.0, 5.0, 8.0, 12.0, np.inf]
-
-
-def load_predictions(folder: Path, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Scene ids, predicted and true depth maps (mm) of one run's predictions file."""
-    with np.load(folder / name) as z:
-        return z["scene_id"], z["pred_mm"], z["depth_mm"]
 
 
 def band_errors(pred: np.ndarray, depth: np.ndarray, bands: list[float]):
@@ -77,17 +71,17 @@ def print_tall(groups: list[tuple[str, list]], above_mm: float) -> None:
         print(f"| {s} | {first[0]} | {first[1]:.1f} | " + " | ".join(cells) + " |")
 
 
-def main() -> None:
+def main(argv: list[str]) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("groups", nargs="+", metavar="LABEL=GLOB")
     ap.add_argument("--tall", type=float, metavar="MM", help="per scene: the pixels above MM")
     ap.add_argument(
         "--file",
         default="test_predictions.npz",
-        help="predictions file in each run folder (experiments/split_predictions.py writes "
+        help="predictions file in each run folder (python -m odmv.study split writes "
         "train_predictions.npz and val_predictions.npz)",
     )
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     names = [
         f"{lo:g}-{hi:g} mm" if np.isfinite(hi) else f"> {lo:g} mm"
         for lo, hi in zip(BANDS_MM[:-1], BANDS_MM[1:], strict=True)
@@ -116,7 +110,3 @@ def main() -> None:
     print("\n".join(rows))
     if args.tall is not None:
         print_tall(groups, args.tall)
-
-
-if __name__ == "__main__":
-    main()

@@ -1,6 +1,6 @@
 """Compare groups of finished runs: mean ± std over seeds, overall, shadowed and per family.
 
-    python experiments/summarize.py 'BN=outputs/accuracy/bn-*' 'GN=outputs/accuracy/gn-*'
+    python -m odmv.study summarize 'BN=outputs/accuracy/bn-*' 'GN=outputs/accuracy/gn-*'
 
 Each argument is ``LABEL=GLOB`` (run folders holding metrics.json, and test_scenes.csv for the
 per-scene columns: a committed reproduction record keeps only metrics.json). Prints a markdown
@@ -10,13 +10,13 @@ and the worst scene of each run (to find outliers before trusting a mean).
 
 from __future__ import annotations
 
+import argparse
 import csv
-import glob
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
+
+from odmv.study.records import run_groups
 
 
 def _stat(values: list[float]) -> str:
@@ -26,16 +26,12 @@ def _stat(values: list[float]) -> str:
     return f"{v.mean():.3f}" + (f" ± {v.std(ddof=1):.3f}" if len(v) > 1 else "")
 
 
-def run_groups(arg: str, marker: str) -> tuple[str, list[Path]]:
-    """``LABEL=GLOB`` as the label and the matched run folders that hold ``marker``."""
-    label, pattern = arg.rsplit("=", 1)  # labels may hold "=" (S=4), globs do not
-    return label, sorted(Path(p) for p in glob.glob(pattern) if (Path(p) / marker).is_file())
-
-
-def main(args: list[str]) -> int:
-    if not args or any("=" not in a for a in args):
-        print(__doc__, file=sys.stderr)
-        return 2
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("groups", nargs="+", metavar="LABEL=GLOB")
+    args = ap.parse_args(argv).groups
+    if any("=" not in a for a in args):
+        ap.error("each argument is LABEL=GLOB")
     families = ("primitives", "pcb", "freeform")
     print(
         "| variant | runs | MAE (mm) | RMSE (mm) | MAE shadowed (mm) | "
@@ -69,7 +65,3 @@ def main(args: list[str]) -> int:
         ]
         print("| " + " | ".join(cols) + " |")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,71 @@
+"""The run folder as the study tools read it: what a finished run holds and how it is found.
+
+A finished run (``python -m odmv.train``, or a reproduction's record of one) is a folder with
+``metrics.json`` (its test metrics, settings and provenance), and beside it where they were
+kept: ``heldout.json`` (its scores on the held-out set), ``test_scenes.csv`` (per-scene
+errors), ``test_predictions.npz`` (predicted and true depth in mm), ``.hydra/config.yaml`` and
+``checkpoints/`` (``best-EPOCH.ckpt``, ``last.ckpt``).
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+from pathlib import Path
+
+import hydra
+import numpy as np
+
+from odmv.config import CONF_DIR  # noqa: F401  (registers the config resolvers)
+from odmv.module import PREDICTIONS, SCENES_CSV, load_module
+
+METRICS = "metrics.json"
+HELDOUT = "heldout.json"  # a run's held-out metrics (odmv.study.heldout)
+__all__ = ["HELDOUT", "METRICS", "PREDICTIONS", "SCENES_CSV"]
+
+
+class RecordError(ValueError):
+    """A one-line error naming the run folder at fault."""
+
+
+def best_checkpoint(run: Path) -> tuple[Path, dict]:
+    """A finished run's best checkpoint (found beside it where the run folder was moved) and
+    its metrics.json."""
+    path = run / METRICS
+    if not path.is_file():
+        raise RecordError(f"{run}: no {METRICS} (not a finished run)")
+    metrics = json.loads(path.read_text())
+    ckpt = Path(metrics["best_checkpoint"])
+    if not ckpt.is_file():
+        ckpt = run / "checkpoints" / ckpt.name  # the run folder was moved
+    return ckpt, metrics
+
+
+def read_only(data: dict, **changes) -> dict:
+    """A saved data config (a checkpoint's) that reads its dataset and never renders one, with
+    ``changes`` on top."""
+    return {**data, "progress": False, "render": False, "simulate": None, **changes}
+
+
+def run_data(run: Path, stage: str, views: list[str] | None = None):
+    """A finished run's best checkpoint (eval mode) and its data module set up for ``stage``,
+    with the run's data settings (``views``: other views than the run's)."""
+    module = load_module(best_checkpoint(run)[0]).eval()
+    views = list(module.hparams.views) if views is None else views
+    data = read_only(module.hparams.data_cfg, views=views)
+    dm = hydra.utils.instantiate(data, _convert_="all")
+    dm.prepare_data()
+    dm.setup(stage)
+    return module, dm
+
+
+def run_groups(arg: str, marker: str) -> tuple[str, list[Path]]:
+    """``LABEL=GLOB`` as the label and the matched run folders that hold ``marker``."""
+    label, pattern = arg.rsplit("=", 1)  # labels may hold "=" (S=4), globs do not
+    return label, sorted(Path(p) for p in glob.glob(pattern) if (Path(p) / marker).is_file())
+
+
+def load_predictions(folder: Path, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Scene ids, predicted and true depth maps (mm) of one run's predictions file."""
+    with np.load(folder / name) as z:
+        return z["scene_id"], z["pred_mm"], z["depth_mm"]
