@@ -48,11 +48,17 @@ class FPPModule(L.LightningModule):
         data_cfg: dict | None = None,
         input_spec: dict | None = None,
         run_info: dict | None = None,
+        compile: str | None = None,
     ):
         super().__init__()
         # logged by on_fit_start once the data has resolved the views and normalization
         self.save_hyperparameters(logger=False)
         self.net = build_net(net_cfg)
+        # torch.compile's wrapper of the net, kept off the module tree: the checkpoint holds
+        # the plain net's weights under their own names, loadable with or without compiling
+        object.__setattr__(
+            self, "_compiled", torch.compile(self.net, mode=compile) if compile else None
+        )
         self.norm = Normalization(**norm) if norm else None
         self.weights = LossWeights(**(loss or {}))
         self.metrics = torch.nn.ModuleDict(
@@ -92,7 +98,8 @@ class FPPModule(L.LightningModule):
     def forward(self, inputs: torch.Tensor) -> dict:
         """``inputs``: the net's input, i.e. a batch's ``inputs`` (fringes plus the reference
         phase) when the data has them, else its normalized ``fringes``."""
-        return self.net(inputs)
+        net = self.net if self._compiled is None else self._compiled
+        return net(inputs)
 
     # ---------------------------------------------------------------- steps
     def training_step(self, batch, _):
@@ -318,7 +325,8 @@ def load_module(ckpt_path: str | Path) -> FPPModule:
     foreign or inconsistent file raises CheckpointError naming it."""
     ckpt = read_checkpoint(ckpt_path)
     try:
-        module = FPPModule(**ckpt["hyper_parameters"])
+        # evaluated, predicted and exported eagerly, however it was trained
+        module = FPPModule(**(ckpt["hyper_parameters"] | {"compile": None}))
     except (TypeError, ValueError, hydra.errors.InstantiationException) as e:
         raise CheckpointError(f"{ckpt_path}: its net settings do not build a net ({e})") from None
     check_weights(ckpt_path, ckpt["state_dict"], module.state_dict())

@@ -76,6 +76,7 @@ def build(cfg: DictConfig):
         log_images=cfg.log_images,
         data_cfg=data_cfg,
         run_info=run_summary(cfg),
+        compile=cfg.get("compile"),
     )
     loggers = [hydra.utils.instantiate(c) for c in (cfg.get("logger") or {}).values()]
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()]
