@@ -25,6 +25,7 @@ from omegaconf import DictConfig
 from odmv.cli import run_app
 from odmv.config import CONF_DIR
 from odmv.io.atomic import write_csv, write_text
+from odmv.metrics import subset_suffix
 from odmv.module import PREDICTIONS, SCENES_CSV
 from odmv.study.records import HELDOUT
 
@@ -40,10 +41,6 @@ FIGURE_SCENES = 3  # test scenes in Fig. 6 and 7: one per scene family
 #: the held-out set's columns (odmv.study.heldout): every pixel, then the subsets as named above
 HELDOUT_SUBSETS = {"all": "", "shadowed": "shadowed"} | FIRST_VIEW
 SPLITS = {"test": "test split", "heldout": "held-out"}  # where a claim is judged
-
-
-def _suffix(subset: str) -> str:
-    return "" if subset == "all" else f"_{subset}"
 
 
 @dataclass(frozen=True)
@@ -257,7 +254,7 @@ def table_markdown(name: str, cells: list[Cell]) -> list[str]:
         for sub in ("", "_shadowed"):
             cols += [_fmt(*c.stat(f"test/{m}{sub}")) for m in METRICS]
         cols += [_subset_cell(c, f"test/mae_mm_{k}") for k in FIRST_VIEW]
-        cols += [_subset_cell(c, f"heldout/mae_mm{_suffix(k)}") for k in HELDOUT_SUBSETS]
+        cols += [_subset_cell(c, f"heldout/mae_mm{subset_suffix(k)}") for k in HELDOUT_SUBSETS]
         if classical:
             cov = c.stat("test/coverage")[0]
             cols.append(f"{100 * cov:.1f}" if np.isfinite(cov) else "–")

@@ -301,10 +301,10 @@ def reproduce(cfg: DictConfig) -> Path:
     runs_dir, out, records = Path(cfg.runs_dir), Path(cfg.out), Path(cfg.records)
     t0 = time.perf_counter()
     jobs = plan(protocol, list(cfg.tables), cfg.seeds, extra, runs_dir, records)
-    data_cfg = _compose([f"experiment={protocol}", *extra]).data
-    dm = hydra.utils.instantiate(data_cfg, _convert_="all")
+    base = _compose([f"experiment={protocol}", *extra])
+    dm = hydra.utils.instantiate(base.data, _convert_="all")
     dm.prepare_data()  # renders the protocol's dataset once; every row reads it
-    threads = _compose([f"experiment={protocol}", *extra]).get("threads")
+    threads = base.get("threads")
     for job in jobs:  # rows finished before they were kept (or by hand) are kept now
         if cfg.heldout and finished(job.folder) and job.current():
             try:
