@@ -17,6 +17,8 @@ import shutil
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 #: errors that mean the target's file system has no room for it
 _FULL = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
 
@@ -69,7 +71,6 @@ def write_json(path: str | os.PathLike, data: dict) -> Path:
 
 def write_npz(path: str | os.PathLike, arrays: dict) -> Path:
     """Named arrays as a compressed ``.npz`` (through a file object: numpy appends no suffix)."""
-    import numpy as np
 
     def write(tmp: Path) -> None:
         with tmp.open("wb") as fh:
