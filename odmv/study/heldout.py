@@ -25,7 +25,7 @@ from pathlib import Path
 from odmv.io.atomic import write_json
 from odmv.io.manifest import MANIFEST
 from odmv.sim.writer import SimSettings, simulate
-from odmv.study.records import HELDOUT, best_checkpoint
+from odmv.study.records import HELDOUT, METRICS, best_checkpoint
 
 SCENES = 200
 
@@ -90,10 +90,10 @@ def score_heldout(run: Path, threads: int | None = None, scenes: int = SCENES) -
         f"hydra.run.dir={scratch}",
     ]
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
-    if proc.returncode != 0 or not (scratch / "metrics.json").is_file():
+    if proc.returncode != 0 or not (scratch / METRICS).is_file():
         last = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or ["no output"]
         raise HeldoutError(f"{run}: held-out scoring failed (exit {proc.returncode}): {last[0]}")
-    held = json.loads((scratch / "metrics.json").read_text())
+    held = json.loads((scratch / METRICS).read_text())
     held["dataset"] = str(data.resolve())
     write_json(run / HELDOUT, held)
     shutil.rmtree(scratch, ignore_errors=True)
@@ -109,7 +109,7 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--scenes", type=int, default=SCENES, help="held-out scenes")
     args = ap.parse_args(argv)
     runs = sorted({Path(r) for g in args.runs for r in glob.glob(g)})
-    runs = [r for r in runs if (r / "metrics.json").is_file()]
+    runs = [r for r in runs if (r / METRICS).is_file()]
     if not runs:
         raise SystemExit(f"error: no finished runs match {args.runs}")
     for run in runs:
@@ -118,7 +118,7 @@ def main(argv: list[str]) -> None:
             if (run / HELDOUT).is_file()
             else score_heldout(run, args.threads, args.scenes)
         )
-        test = json.loads((run / "metrics.json").read_text())["test/mae_mm"]
+        test = json.loads((run / METRICS).read_text())["test/mae_mm"]
         print(
             f"{run}: held-out MAE {held['test/mae_mm']:.4f} mm (shadowed "
             f"{held['test/mae_mm_shadowed']:.4f}), test split {test:.4f} mm",
