@@ -1,5 +1,5 @@
-"""Where the configs live, and the OmegaConf resolvers they use; imported by every Hydra
-entry point."""
+"""Where the configs live, the net registry, and the OmegaConf resolvers the configs use;
+imported by every Hydra entry point."""
 
 from __future__ import annotations
 
@@ -7,13 +7,53 @@ import hashlib
 import json
 from pathlib import Path
 
-from omegaconf import ListConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from odmv.data.reference import view_channels as reference_channels
 from odmv.rig import VIEW_SETS, check_views
 
 #: the Hydra config tree every app composes from
 CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
+
+
+def compose_train(overrides: list[str], hydra_cfg: bool = False) -> DictConfig:
+    """The train config for ``overrides``, inside a running Hydra app or in a fresh one."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    if GlobalHydra.instance().is_initialized():
+        return compose("train", overrides=overrides, return_hydra_config=hydra_cfg)
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose("train", overrides=overrides, return_hydra_config=hydra_cfg)
+
+
+def model_configs() -> dict[str, DictConfig]:
+    """The net registry: every model config (conf/model/NAME.yaml) by NAME, as written. A net is
+    its class plus its config; a config whose defaults list builds on another (unet_s4) is a
+    variant of that net. ``model.table2`` makes it a row of Table II."""
+    return {p.stem: OmegaConf.load(p) for p in sorted(Path(CONF_DIR, "model").glob("*.yaml"))}
+
+
+def nets() -> list[str]:
+    """The nets: model configs that are not variants of another."""
+    return [name for name, c in model_configs().items() if "defaults" not in c]
+
+
+def baselines() -> list[str]:
+    """The nets ODMV-Net is compared against."""
+    return [name for name in nets() if name != "odmvnet"]
+
+
+def contenders(extra=None) -> ListConfig:
+    """Table II's rows in their order: every model config with a ``table2`` entry, without the
+    ones marked ``extra`` (rows beyond the paper) unless ``extra`` is given."""
+    rows = {
+        name: c.model.table2
+        for name, c in model_configs().items()
+        if c.get("model", {}).get("table2") is not None
+    }
+    keep = [n for n, r in rows.items() if extra is not None or not r.get("extra", False)]
+    return ListConfig(sorted(keep, key=lambda n: rows[n].order))
 
 
 def view_list(views) -> ListConfig:
@@ -81,6 +121,7 @@ for _name, _fn in (
     ("odmv.views", view_list),
     ("odmv.n_views", n_views),
     ("odmv.hash", settings_hash),
+    ("odmv.contenders", contenders),
 ):
     if not OmegaConf.has_resolver(_name):
         OmegaConf.register_new_resolver(_name, _fn)

@@ -28,6 +28,8 @@ from odmv.io.atomic import write_csv, write_text
 from odmv.metrics import subset_suffix
 from odmv.module import PREDICTIONS, SCENES_CSV
 from odmv.study.records import HELDOUT
+from odmv.study.tables import TITLES, Row
+from odmv.study.tables import tables as declared
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -41,63 +43,6 @@ FIGURE_SCENES = 3  # test scenes in Fig. 6 and 7: one per scene family
 #: the held-out set's columns (odmv.study.heldout): every pixel, then the subsets as named above
 HELDOUT_SUBSETS = {"all": "", "shadowed": "shadowed"} | FIRST_VIEW
 SPLITS = {"test": "test split", "heldout": "held-out"}  # where a claim is judged
-
-
-@dataclass(frozen=True)
-class Row:
-    table: str
-    label: str
-    model: str
-    views: int
-    ablation: str | None = None
-    paper: tuple[float, float, float] | None = None  # MAE, MSE, RMSE as the paper prints them
-    width: int | None = None  # a row of one base width; None: the runs no such row claims
-
-
-_ABLATION = (
-    ("baseline", "Baseline (vanilla 3D U-Net)", (0.0926, 0.1337, 0.3442)),
-    ("rb_ag", "+RB&AG", (0.0463, 0.0440, 0.1840)),
-    ("aspp", "+ASPP", (0.0451, 0.0432, 0.1778)),
-    ("rve", "+RVE", (0.0461, 0.0427, 0.1776)),
-    ("ocd_oaf", "+OCD&OAF", (0.0452, 0.0411, 0.1747)),
-    ("multitask", "+Multi-task (ODMV-Net)", (0.0447, 0.0403, 0.1741)),
-)
-PAPER_ODMV = (0.0447, 0.0403, 0.1741)
-
-#: The three tables in the paper's layout.
-TABLES: dict[str, list[Row]] = {
-    "views": [
-        Row("views", "S=1 (right)", "odmvnet", 1, "multitask"),
-        Row("views", "S=2 (right, up)", "odmvnet", 2, "multitask"),
-        Row("views", "S=3 (right, left, up)", "odmvnet", 3, "multitask"),
-        Row("views", "S=4 (all)", "odmvnet", 4, "multitask", PAPER_ODMV),
-    ],
-    "table1": [Row("table1", label, "odmvnet", 4, key, p) for key, label, p in _ABLATION],
-    "table2": [
-        Row("table2", "hNet (S=1)", "hnet", 1, None, (0.1449, 0.2794, 0.4792)),
-        Row("table2", "UNet (S=1)", "unet", 1, None, (0.1083, 0.2132, 0.3979)),
-        Row("table2", "UHRNet (S=1)", "uhrnet", 1, None, (0.1049, 0.1523, 0.3316)),
-        Row("table2", "MTLNet (S=1)", "mtlnet", 1, None, (0.0928, 0.1434, 0.3296)),
-        Row("table2", "UNet, 4 views as channels (S=4)", "unet", 4),
-        Row("table2", "Classical phase shifting (4 projectors)", "classical", 4),
-        Row("table2", "ODMV-Net (S=4)", "odmvnet", 4, "multitask", PAPER_ODMV),
-        Row(
-            "table2",
-            "ODMV-Net at UHRNet's size (S=4, width 24)",
-            "odmvnet",
-            4,
-            "multitask",
-            width=24,
-        ),
-    ],
-}
-TITLES = {
-    "views": "View-count experiment (ODMV-Net, Sec. III.A)",
-    "table1": "Table I: module ablation (ODMV-Net, S=4)",
-    "table2": "Table II: model comparison",
-}
-#: ODMV-Net's MAE improvement over each single-view baseline, as the paper quotes it (%).
-PAPER_IMPROVEMENT = {"unet": 58.73, "hnet": 69.15, "uhrnet": 57.39, "mtlnet": 51.83}
 
 
 class ReportError(ValueError):
@@ -185,17 +130,19 @@ def _heldout(folder: Path) -> dict:
     return {f"heldout/{k[5:]}": v for k, v in held.items() if k.startswith("test/")}
 
 
-def build_tables(runs: list[Run]) -> dict[str, list[Cell]]:
-    """Each table's rows with their runs. A run that a row of its own width claims (ODMV-Net
-    at width 24) belongs to that row only; the other rows take the protocol's width."""
-    widths = {row.width for rows in TABLES.values() for row in rows} - {None}
+def build_tables(runs: list[Run], protocol: str | None = None) -> dict[str, list[Cell]]:
+    """Each table's rows (odmv.study.tables, for ``protocol``) with their runs. A run that a
+    row of its own width claims (ODMV-Net at width 24) belongs to that row only; the other rows
+    take the protocol's width."""
+    rows_of = declared(protocol)
+    widths = {row.width for rows in rows_of.values() for row in rows} - {None}
 
     def belongs(run: Run, row: Row) -> bool:
         return run.matches(row) and (row.width is not None or run.width not in widths)
 
     return {
         name: [Cell(row, [r for r in runs if belongs(r, row)]) for row in rows]
-        for name, rows in TABLES.items()
+        for name, rows in rows_of.items()
     }
 
 
@@ -290,7 +237,7 @@ def improvements_markdown(cells: list[Cell]) -> list[str]:
             base, mine = c.stat(f"test/mae_mm{sub}")[0], ours.stat(f"test/mae_mm{sub}")[0]
             ok = np.isfinite(base) and np.isfinite(mine) and base > 0
             vals.append(f"{100 * (base - mine) / base:.1f}" if ok else "–" if sub else "missing")
-        paper = PAPER_IMPROVEMENT.get(c.row.model) if c.row.views == 1 else None
+        paper = c.row.improvement_pct
         lines.append(f"| {c.row.label} | {paper if paper else '–'} | " + " | ".join(vals) + " |")
     return lines + [""]
 
@@ -396,7 +343,7 @@ def claims_markdown(tables: dict[str, list[Cell]]) -> list[str]:
         compare(f"{after.row.label} below {before.row.label}", after, before)
     ours = next(c for c in tables["table2"] if c.row.model == "odmvnet")
     for c in tables["table2"]:
-        paper = PAPER_IMPROVEMENT.get(c.row.model) if c.row.views == 1 else None
+        paper = c.row.improvement_pct
         if paper is None:
             continue
         m, b = ours.stat("test/mae_mm")[0], c.stat("test/mae_mm")[0]
@@ -645,7 +592,7 @@ def write_report(
     if not runs:
         raise ReportError(f"{', '.join(map(str, folders))}: no finished run (metrics.json) found")
     out.mkdir(parents=True, exist_ok=True)
-    tables = build_tables(runs)
+    tables = build_tables(runs, protocol)
     seconds = sum(float(r.metrics.get("train_seconds", 0)) for r in runs)
     lines = [
         "# odmv reproduction report",

@@ -29,19 +29,18 @@ from pathlib import Path
 
 import hydra
 import numpy as np
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig, OmegaConf
 
 from odmv.classical import classical_row
 from odmv.cli import run_app
-from odmv.config import CONF_DIR  # (and registers the config resolvers)
+from odmv.config import CONF_DIR, compose_train
 from odmv.losses import OPTIONAL_TERMS
 from odmv.module import PREDICTIONS, SCENES_CSV
 from odmv.report import FIGURE_SCENES, Run, pick_scenes, write_report
 from odmv.study.heldout import HeldoutError, score_heldout
 from odmv.study.records import HELDOUT
+from odmv.study.tables import own_width
 
 CLASSICAL_DIR = "classical"
 RECORD = "reproduce.json"  # per row: the overrides that trained it and their key
@@ -104,19 +103,11 @@ def finished(*folders: Path) -> Path | None:
     return next((f for f in folders if (f / "metrics.json").is_file()), None)
 
 
-def _compose(overrides: list[str], hydra_cfg: bool = False) -> DictConfig:
-    """The train config for ``overrides`` (inside this app's Hydra, or a fresh one)."""
-    if GlobalHydra.instance().is_initialized():
-        return compose("train", overrides=overrides, return_hydra_config=hydra_cfg)
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return compose("train", overrides=overrides, return_hydra_config=hydra_cfg)
-
-
 def sweep_overrides(protocol: str, table: str, extra: list[str]) -> list[list[str]]:
     """The jobs of one table's sweep (conf/sweep/<table>.yaml) as override lists, expanded like
     Hydra's basic sweeper (the cartesian product of the sweep's parameters)."""
     try:
-        cfg = _compose([f"experiment={protocol}", f"sweep={table}", *extra], hydra_cfg=True)
+        cfg = compose_train([f"experiment={protocol}", f"sweep={table}", *extra], hydra_cfg=True)
     except Exception as e:  # Hydra's composition errors name the missing option
         raise ReproduceError(f"protocol={protocol} table={table}: {e}") from None
     params = OmegaConf.to_container(cfg.hydra.sweeper.params, resolve=True)
@@ -150,6 +141,8 @@ def _run_key(cfg: DictConfig) -> str:
     # (full_width reaches ODMV-Net's model.net only, so a baseline's row ignores it too)
     for per_net in ("widths", "alphas", "lrs", "full_width"):
         d.pop(per_net, None)
+    for about in ("table2", "published_parameters"):  # what the registry says of the net
+        d["model"].pop(about, None)
     net = hydra.utils.get_class(d["model"]["net"]["_target_"])
     for term in OPTIONAL_TERMS:  # a loss weight the net has no output for is never read
         if term not in net.LOSS_TERMS:
@@ -185,21 +178,20 @@ def plan(
     """Every distinct run of the reproduction, seed-major, each with its folder (named by the
     row; a configuration that two tables share is one run) and its record in ``records``."""
     records = runs_dir / "records" if records is None else records
-    base = _compose([f"experiment={protocol}", *extra])
+    base = compose_train([f"experiment={protocol}", *extra])
     seeds = list(base.seeds) if seeds is None else list(seeds)
     jobs: dict[str, Job] = {}
     for seed in seeds:
         for table in tables:
             for ov in sweep_overrides(protocol, table, extra):
                 ov = [o for o in ov if not o.startswith("seed=")] + [f"seed={seed}"]
-                cfg = _compose([f"experiment={protocol}", *extra, *ov])
+                cfg = compose_train([f"experiment={protocol}", *extra, *ov])
                 views = len(cfg.data.views)
                 name = f"{cfg.model.name}-s{views}"
                 if cfg.model.name == "odmvnet":
                     name += f"-{cfg.ablation}"
-                width = cfg.model.net.get("base_width")
-                if width is not None and width != cfg.widths.get(cfg.model.name):
-                    name += f"-w{width}"  # a row at another width than the protocol's
+                if own_width(cfg) is not None:
+                    name += f"-w{own_width(cfg)}"  # a row at another width than the protocol's
                 key = _run_key(cfg)
                 name += f"-seed{seed}"
                 job = jobs.setdefault(key, Job(ov, seed, runs_dir / name, key, records / name))
@@ -301,7 +293,7 @@ def reproduce(cfg: DictConfig) -> Path:
     runs_dir, out, records = Path(cfg.runs_dir), Path(cfg.out), Path(cfg.records)
     t0 = time.perf_counter()
     jobs = plan(protocol, list(cfg.tables), cfg.seeds, extra, runs_dir, records)
-    base = _compose([f"experiment={protocol}", *extra])
+    base = compose_train([f"experiment={protocol}", *extra])
     dm = hydra.utils.instantiate(base.data, _convert_="all")
     dm.prepare_data()  # renders the protocol's dataset once; every row reads it
     threads = base.get("threads")

@@ -1,21 +1,25 @@
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from hydra.utils import get_class, instantiate
 
-from odmv.config import CONF_DIR
+from odmv.config import CONF_DIR, baselines, compose_train, model_configs, nets
 from odmv.losses import OPTIONAL_TERMS, LossWeights, composite_loss
-from odmv.models import HNet, MTLNet, UHRNet, UNet, count_parameters
+from odmv.models import HNet, MTLNet, UNet, count_parameters
 from odmv.train import train
 
-PUBLISHED = {UNet: 8.6e6, HNet: 8.63e6, UHRNet: 30.3e6}
-NETS = (UNet, HNet, UHRNet, MTLNet)
+# the baselines of the registry (conf/model/): each a class taking in_channels and base_width
+NETS = [get_class(model_configs()[name].model.net._target_) for name in baselines()]
 
 
-@pytest.mark.parametrize("cls", list(PUBLISHED))
-def test_published_widths_give_published_parameter_counts(cls):
+@pytest.mark.parametrize(
+    "name", [n for n in nets() if "published_parameters" in model_configs()[n].model]
+)
+def test_published_widths_give_published_parameter_counts(name):
+    cfg = compose_train([f"model={name}"])  # the paper's protocol: every net at its published width
     with torch.device("meta"):
-        n = count_parameters(cls())
-    assert abs(n / PUBLISHED[cls] - 1) < 0.05, n
+        n = count_parameters(instantiate(cfg.model.net))
+    assert abs(n / cfg.model.published_parameters - 1) < 0.03, n
 
 
 @pytest.mark.parametrize("cls", NETS)
@@ -48,7 +52,7 @@ def test_inputs_must_fit_the_pooling():
         UNet(base_width=4)(torch.zeros(1, 1, 40, 32))
 
 
-@pytest.mark.parametrize("model", ["unet", "hnet", "uhrnet", "mtlnet"])
+@pytest.mark.parametrize("model", baselines())
 def test_two_training_steps_through_train(model, tiny_dataset, tmp_path):
     overrides = [
         f"model={model}",

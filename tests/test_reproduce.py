@@ -5,7 +5,6 @@ a resumed reproduction that trains nothing."""
 import csv
 import json
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,6 +15,7 @@ from omegaconf import OmegaConf
 
 from odmv.classical import classical_row
 from odmv.config import CONF_DIR
+from odmv.config import contenders as contenders_of
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import footprint_from_depth, subset_masks
 from odmv.module import FPPModule
@@ -116,14 +116,14 @@ def _compose(overrides, hydra_cfg=False):
 def test_sweeps_expand_to_the_tables_rows():
     jobs = sweep_overrides("mini", "models", [])
     assert len(jobs) == 14  # seven rows x the mini protocol's two seeds
-    assert ["contender=unet_s4", "seed=0"] in jobs
+    assert ["model=unet_s4", "seed=0"] in jobs
     assert len(sweep_overrides("paper", "models", [])) == 6  # no width-24 row: ODMV-Net is 46
     # ODMV-Net at UHRNet's size: width 24 with its full-resolution stage as wide, however the
     # protocol sets the ODMV-Net width of the other rows (notebook round 28)
-    w24 = _compose(["experiment=mini", "contender=odmvnet_s4_w24"])
+    w24 = _compose(["experiment=mini", "model=odmvnet_w24"])
     assert (w24.model.net.base_width, w24.model.net.full_width, len(w24.data.views)) == (24, 24, 4)
     assert (w24.threads, _compose(["experiment=paper"]).threads) == (2, None)
-    cfg = _compose(["experiment=mini", "contender=unet_s4"])
+    cfg = _compose(["experiment=mini", "model=unet_s4"])
     assert cfg.model.name == "unet" and cfg.model.net.in_channels == 4 * 3  # with the reference
     assert cfg.model.net.base_width == 32  # baselines keep their published width
     cfg = _compose(["experiment=mini"])
@@ -136,11 +136,11 @@ def test_sweeps_expand_to_the_tables_rows():
 def test_mini_trains_every_net_for_the_same_epochs_in_one_cosine_cycle():
     # Table II compares nets at equal epochs (the paper's protocol); 70 epochs for all of them
     # (notebook rounds 25-26), the cosine schedule ending at the last one
-    contenders = sorted(p.stem for p in Path(CONF_DIR, "contender").glob("*.yaml"))
-    assert len(contenders) == 7  # the Table II rows that train
-    assert sorted(_compose(["experiment=mini"]).contenders) == contenders
+    contenders = list(_compose(["experiment=mini"]).contenders)
+    assert len(contenders) == 7  # the Table II rows that train, the width-24 row among them
+    assert contenders == list(contenders_of("extra")) and "odmvnet_w24" in contenders
     for contender in contenders:
-        cfg = _compose(["experiment=mini", f"contender={contender}"])
+        cfg = _compose(["experiment=mini", f"model={contender}"])
         assert (cfg.trainer.max_epochs, cfg.scheduler.T_0) == (70, 70), contender
 
 
@@ -160,14 +160,14 @@ def test_paper_keeps_the_recipe_and_the_other_presets_take_the_improvements():
         paper.model.net.base_width,
     )
     # the same data-side switches reach the baselines: a fair comparison
-    unet = _compose(["experiment=mini", "contender=unet_s1"])
+    unet = _compose(["experiment=mini", "model=unet"])
     assert (unet.norm, unet.reference, unet.data.depth_target) == improved[:3]
     # L1 where it helped a baseline (hNet, UHRNet: notebook round 21), the paper's SSIM
     # share where it did not (UNet round 9, MTLNet round 21), in both presets that compare
-    alpha = {"unet_s1": 0.8, "hnet_s1": 0.0, "uhrnet_s1": 0.0, "mtlnet_s1": 0.8, "unet_s4": 0.8}
+    alpha = {"unet": 0.8, "hnet": 0.0, "uhrnet": 0.0, "mtlnet": 0.8, "unet_s4": 0.8}
     for preset in ("mini", "paper_plus"):
         for contender, want in alpha.items():
-            got = _compose([f"experiment={preset}", f"contender={contender}"]).loss.alpha
+            got = _compose([f"experiment={preset}", f"model={contender}"]).loss.alpha
             assert got == want, (preset, contender)
     assert unet.model.net.in_channels == 3  # one view: fringe, sin, cos
 

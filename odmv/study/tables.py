@@ -1,0 +1,89 @@
+"""The paper's three tables as the report lays them out, declared once: each row's label, what
+it is (net, views, Table I row, base width) and the paper's figures. The view-count table and
+Table I are ODMV-Net's own rows; Table II is the net registry's (conf/model/*.yaml with a
+``table2`` entry) that a protocol lists in ``contenders``, plus the classical reference."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from omegaconf import DictConfig
+
+from odmv.config import compose_train, contenders
+
+
+@dataclass(frozen=True)
+class Row:
+    table: str
+    label: str
+    model: str
+    views: int
+    ablation: str | None = None
+    paper: tuple[float, float, float] | None = None  # MAE, MSE, RMSE as the paper prints them
+    width: int | None = None  # a row of one base width; None: the runs no such row claims
+    improvement_pct: float | None = None  # ODMV-Net's MAE reduction on this row, the paper's
+
+
+#: Table I's cumulative module rows (conf/ablation/, odmv.models.ABLATION_ROWS): key, label and
+#: the paper's MAE, MSE, RMSE
+ABLATION = (
+    ("baseline", "Baseline (vanilla 3D U-Net)", (0.0926, 0.1337, 0.3442)),
+    ("rb_ag", "+RB&AG", (0.0463, 0.0440, 0.1840)),
+    ("aspp", "+ASPP", (0.0451, 0.0432, 0.1778)),
+    ("rve", "+RVE", (0.0461, 0.0427, 0.1776)),
+    ("ocd_oaf", "+OCD&OAF", (0.0452, 0.0411, 0.1747)),
+    ("multitask", "+Multi-task (ODMV-Net)", (0.0447, 0.0403, 0.1741)),
+)
+PAPER_ODMV = ABLATION[-1][2]  # the full ODMV-Net at S = 4
+VIEWS = ("S=1 (right)", "S=2 (right, up)", "S=3 (right, left, up)", "S=4 (all)")
+#: the classical reference (odmv.classical) and its place among Table II's registry rows
+CLASSICAL = Row("table2", "Classical phase shifting (4 projectors)", "classical", 4)
+CLASSICAL_ORDER = 6
+TITLES = {
+    "views": "View-count experiment (ODMV-Net, Sec. III.A)",
+    "table1": "Table I: module ablation (ODMV-Net, S=4)",
+    "table2": "Table II: model comparison",
+}
+
+
+def own_width(cfg: DictConfig) -> int | None:
+    """The base width of a row that sets its own (ODMV-Net at width 24), None where the row
+    trains the protocol's width for its net (``widths``)."""
+    width = cfg.model.net.get("base_width")
+    return width if width is not None and width != cfg.widths.get(cfg.model.name) else None
+
+
+def table2(protocol: str | None = None) -> list[Row]:
+    """Table II's rows for ``protocol`` (its ``contenders``; None: every registry row) in the
+    registry's order, the classical reference in its place."""
+    base = [f"experiment={protocol}"] if protocol else []
+    names = compose_train(base).contenders if protocol else contenders("extra")
+    keyed = [(CLASSICAL_ORDER, CLASSICAL)]
+    for name in names:
+        cfg = compose_train([*base, f"model={name}"])
+        entry = cfg.model.table2
+        paper = entry.get("paper") or {}
+        row = Row(
+            "table2",
+            entry.label,
+            cfg.model.name,
+            len(cfg.data.views),
+            cfg.model.net.get("ablation"),
+            tuple(paper[k] for k in ("mae_mm", "mse_mm2", "rmse_mm")) if paper else None,
+            own_width(cfg),
+            paper.get("improvement_pct"),
+        )
+        keyed.append((entry.order, row))
+    return [row for _, row in sorted(keyed, key=lambda k: k[0])]
+
+
+def tables(protocol: str | None = None) -> dict[str, list[Row]]:
+    """The three tables in the paper's layout."""
+    return {
+        "views": [
+            Row("views", label, "odmvnet", s, "multitask", PAPER_ODMV if s == 4 else None)
+            for s, label in enumerate(VIEWS, 1)
+        ],
+        "table1": [Row("table1", label, "odmvnet", 4, key, p) for key, label, p in ABLATION],
+        "table2": table2(protocol),
+    }
