@@ -4,7 +4,7 @@ Writes ``DIR/model.onnx``: input ``inputs`` (batch x channels x H x W, the net's
 data module builds it: normalized fringes, plus the reference phase where the net was trained
 with it), output ``depth_mm`` (batch x 1 x H x W, camera-axis depth in mm: the normalization is
 inside the graph). The batch is dynamic; H and W are the training size. The metadata entry
-``odmv`` (JSON) holds what :func:`odmv.predict.load_predictor` needs to build the input from
+``odmv`` (JSON) holds what :func:`odmv.inference.load_predictor` needs to build the input from
 images: views in order, input size, normalization and input settings.
 """
 

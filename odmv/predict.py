@@ -16,9 +16,7 @@ sub-folder each). The intensity scale and any resizing are printed, never silent
 from __future__ import annotations
 
 import glob
-import json
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,11 +32,9 @@ from odmv.classical import reconstruct_scene
 from odmv.cli import run_app
 from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.data.dataset import DataError, SampleSpec, check_spec, load_scene
-from odmv.data.normalize import Normalization
-from odmv.data.reference import network_input, reference_mode, reference_phase
-from odmv.export import METADATA_KEY, input_shape
 from odmv.fpp import period_in_camera_px
-from odmv.io.atomic import write_atomic, write_bytes
+from odmv.inference import load_predictor
+from odmv.io.atomic import write_atomic
 from odmv.io.exr import write_exr
 from odmv.io.images import IMAGE_EXTENSIONS, find_view_image, fit_to, read_image
 from odmv.io.manifest import (
@@ -49,7 +45,7 @@ from odmv.io.manifest import (
     fringe_name,
     load_manifest,
 )
-from odmv.module import load_module
+from odmv.io.pointcloud import point_cloud, write_ply
 from odmv.rig import VIEW_NAMES, Camera, Rig
 
 matplotlib.use("Agg")
@@ -159,41 +155,6 @@ def lit_by_any_view(images: np.ndarray, period_camera_px: float, threshold: floa
     return (peak > threshold).any(0)
 
 
-def point_cloud(depth_mm: np.ndarray, cam: Camera, keep: np.ndarray | None = None) -> np.ndarray:
-    """Camera-frame points (N x 3, mm) of the pixel centres at their depth: pixels with a
-    finite depth, and only those in ``keep`` where given."""
-    _, d = cam.centre_rays()
-    d_cam = d.reshape(-1, 3) @ cam.R.T  # camera-frame directions
-    pts = d_cam / d_cam[:, 2:3] * depth_mm.reshape(-1, 1)
-    ok = np.isfinite(pts).all(1)
-    if keep is not None:
-        ok &= keep.reshape(-1)
-    return pts[ok]
-
-
-def write_ply(path: Path, points: np.ndarray, grey: np.ndarray | None = None) -> Path:
-    """Binary little-endian PLY of float32 xyz points (grey: uint8 colour per point, written
-    as equal red, green and blue), atomically."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    if grey is not None:
-        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-    rows = np.empty(len(points), dtype=fields)
-    for k, axis in enumerate("xyz"):
-        rows[axis] = points[:, k]
-    if grey is not None:
-        for channel in ("red", "green", "blue"):
-            rows[channel] = grey
-    types = {"<f4": "float", "u1": "uchar"}
-    header = (
-        "ply\nformat binary_little_endian 1.0\ncomment odmv depth, camera frame, mm\n"
-        f"element vertex {len(points)}\n"
-        + "".join(f"property {types[t]} {name}\n" for name, t in fields)
-        + "end_header\n"
-    )
-    return write_bytes(path, header.encode("ascii") + rows.tobytes())
-
-
 def uniform_grey(scene: Scene, reader: ImageReader, views: list[str], size) -> np.ndarray | None:
     """The flat-illumination images as grey levels (uint8, the brightest view per pixel, so a
     surface any projector lights shows its albedo), or None where the scene has none."""
@@ -211,76 +172,6 @@ def uniform_grey(scene: Scene, reader: ImageReader, views: list[str], size) -> n
     if size is not None:
         images, _ = fit_to(images, size, reader.fit)
     return np.round(np.clip(images.max(0), 0, 1) * 255).astype(np.uint8)
-
-
-@dataclass
-class Predictor:
-    """A trained net with what it needs to turn images into depth: its views in order, input
-    size (H, W), normalization and input settings, and ``run``: net input -> depth (mm)."""
-
-    views: list[str]
-    size: tuple[int, int]
-    norm: Normalization
-    input_spec: dict
-    run: Callable[[torch.Tensor], np.ndarray]
-
-    def inputs(self, fringes: np.ndarray, rig: Rig) -> torch.Tensor:
-        """The net's input (1 x C x H x W) from linear-intensity images (S x H x W)."""
-        x = self.norm.fringes(torch.from_numpy(np.ascontiguousarray(fringes, np.float32)))
-        spec = self.input_spec
-        mode = reference_mode(spec.get("reference"))
-        if mode:  # the reference-plane phase from the rig's calibration
-            ref = reference_phase(
-                rig, self.views, *self.size, spec["period_px"], spec["step"], spec["n_steps"]
-            )
-            x = network_input(x, torch.from_numpy(ref), mode)
-        return x[None]
-
-
-def load_predictor(path: str | Path) -> Predictor:
-    """A checkpoint (``.ckpt``, run by PyTorch) or an exported ``.onnx`` (run by ONNX Runtime,
-    on CUDA where available)."""
-    if Path(path).suffix == ".onnx":
-        return _onnx_predictor(Path(path))
-    module = load_module(path).eval()
-
-    def run(x: torch.Tensor) -> np.ndarray:
-        with torch.no_grad():
-            return module.depth_mm(module(x)).numpy().astype(np.float32)
-
-    return Predictor(
-        list(module.hparams.views),
-        input_shape(module)[1:],
-        module.norm,
-        dict(module.hparams.get("input_spec") or {}),
-        run,
-    )
-
-
-def _onnx_predictor(path: Path) -> Predictor:
-    import onnxruntime as ort
-
-    if not path.is_file():
-        raise ValueError(f"{path}: no such ONNX model")
-    try:
-        session = ort.InferenceSession(str(path), providers=ort.get_available_providers())
-    except Exception as e:  # ONNX Runtime's own errors (a damaged or foreign file)
-        raise ValueError(f"{path}: not a readable ONNX model ({str(e).splitlines()[0]})") from None
-    meta = session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
-    if meta is None:
-        raise ValueError(f"{path}: no odmv metadata (export it with python -m odmv.export)")
-    meta = json.loads(meta)
-
-    def run(x: torch.Tensor) -> np.ndarray:
-        return session.run(None, {"inputs": x.numpy()})[0]
-
-    return Predictor(
-        meta["views"],
-        tuple(meta["input_size"]),
-        Normalization(**meta["norm"]),
-        meta["input_spec"],
-        run,
-    )
 
 
 def write_preview(path: Path, depth_mm: np.ndarray) -> Path:

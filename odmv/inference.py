@@ -1,0 +1,89 @@
+"""A trained net as a depth function: a checkpoint (run by PyTorch) or an exported ONNX model
+(run by ONNX Runtime) with the views, input size, normalization and input settings it was
+trained with. Used by ``odmv.predict`` and by anything that runs a net on images."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from odmv.data.normalize import Normalization
+from odmv.data.reference import network_input, reference_mode, reference_phase
+from odmv.export import METADATA_KEY, input_shape
+from odmv.module import load_module
+from odmv.rig import Rig
+
+
+@dataclass
+class Predictor:
+    """A trained net with what it needs to turn images into depth: its views in order, input
+    size (H, W), normalization and input settings, and ``run``: net input -> depth (mm)."""
+
+    views: list[str]
+    size: tuple[int, int]
+    norm: Normalization
+    input_spec: dict
+    run: Callable[[torch.Tensor], np.ndarray]
+
+    def inputs(self, fringes: np.ndarray, rig: Rig) -> torch.Tensor:
+        """The net's input (1 x C x H x W) from linear-intensity images (S x H x W)."""
+        x = self.norm.fringes(torch.from_numpy(np.ascontiguousarray(fringes, np.float32)))
+        spec = self.input_spec
+        mode = reference_mode(spec.get("reference"))
+        if mode:  # the reference-plane phase from the rig's calibration
+            ref = reference_phase(
+                rig, self.views, *self.size, spec["period_px"], spec["step"], spec["n_steps"]
+            )
+            x = network_input(x, torch.from_numpy(ref), mode)
+        return x[None]
+
+
+def load_predictor(path: str | Path) -> Predictor:
+    """A checkpoint (``.ckpt``, run by PyTorch) or an exported ``.onnx`` (run by ONNX Runtime,
+    on CUDA where available)."""
+    if Path(path).suffix == ".onnx":
+        return _onnx_predictor(Path(path))
+    module = load_module(path).eval()
+
+    def run(x: torch.Tensor) -> np.ndarray:
+        with torch.no_grad():
+            return module.depth_mm(module(x)).numpy().astype(np.float32)
+
+    return Predictor(
+        list(module.hparams.views),
+        input_shape(module)[1:],
+        module.norm,
+        dict(module.hparams.get("input_spec") or {}),
+        run,
+    )
+
+
+def _onnx_predictor(path: Path) -> Predictor:
+    import onnxruntime as ort
+
+    if not path.is_file():
+        raise ValueError(f"{path}: no such ONNX model")
+    try:
+        session = ort.InferenceSession(str(path), providers=ort.get_available_providers())
+    except Exception as e:  # ONNX Runtime's own errors (a damaged or foreign file)
+        raise ValueError(f"{path}: not a readable ONNX model ({str(e).splitlines()[0]})") from None
+    meta = session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
+    if meta is None:
+        raise ValueError(f"{path}: no odmv metadata (export it with python -m odmv.export)")
+    meta = json.loads(meta)
+
+    def run(x: torch.Tensor) -> np.ndarray:
+        return session.run(None, {"inputs": x.numpy()})[0]
+
+    return Predictor(
+        meta["views"],
+        tuple(meta["input_size"]),
+        Normalization(**meta["norm"]),
+        meta["input_spec"],
+        run,
+    )
