@@ -21,6 +21,7 @@ from odmv.data.subsets import MASKS
 from odmv.fpp import fuse_views, period_in_camera_px, reconstruct_view
 from odmv.io.atomic import write_json
 from odmv.io.manifest import load_manifest
+from odmv.io.runfolder import METRICS
 from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_suffix
 from odmv.module import subset_masks, write_test_outputs
 from odmv.provenance import provenance
@@ -125,5 +126,5 @@ def classical_row(
     )
     out_dir = Path(out_dir)
     write_test_outputs(out_dir, rows, preds)
-    write_json(out_dir / "metrics.json", out)
+    write_json(out_dir / METRICS, out)
     return out

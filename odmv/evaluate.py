@@ -24,8 +24,9 @@ from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.data.dataset import DataError
 from odmv.io.atomic import write_json
 from odmv.io.manifest import MANIFEST
+from odmv.io.runfolder import METRICS, PREDICTIONS, SCENES_CSV
 from odmv.metrics import DepthErrors
-from odmv.module import PREDICTIONS, SCENES_CSV, load_module, net_input
+from odmv.module import load_module, net_input
 from odmv.study.records import read_only
 
 matplotlib.use("Agg")
@@ -190,7 +191,7 @@ def evaluate(cfg: DictConfig, overrides: list[str] | None = None) -> dict:
         metrics["constant/depth_mm"] = const
     metrics.update(family_errors(out_dir, const))
     out_dir.mkdir(parents=True, exist_ok=True)
-    write_json(out_dir / "metrics.json", metrics)
+    write_json(out_dir / METRICS, metrics)
     module.eval()
     ds = dm.datasets["test"]
     with torch.no_grad():

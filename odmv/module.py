@@ -23,6 +23,7 @@ from odmv.checkpoint import CheckpointError, check_weights, read_checkpoint
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import MASKS
 from odmv.io.atomic import write_csv, write_npz
+from odmv.io.runfolder import PREDICTIONS, SCENES_CSV
 from odmv.losses import LossWeights, composite_loss
 from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_results
 
@@ -281,10 +282,6 @@ def subset_masks(batch: dict) -> dict[str, torch.Tensor]:
     """Metric pixel masks (B x 1 x H x W) from the batch's ground truth: odmv.data.subsets."""
     valid = batch["valid"]
     return {"all": valid} | {k: batch[k] * valid for k in MASKS}
-
-
-SCENES_CSV = "test_scenes.csv"
-PREDICTIONS = "test_predictions.npz"
 
 
 def _gather(items: list) -> list:

@@ -25,8 +25,9 @@ from omegaconf import DictConfig
 from odmv.cli import run_app
 from odmv.config import CONF_DIR
 from odmv.io.atomic import write_csv, write_text
+from odmv.io.runfolder import METRICS as METRICS_JSON
+from odmv.io.runfolder import PREDICTIONS, SCENES_CSV
 from odmv.metrics import subset_suffix
-from odmv.module import PREDICTIONS, SCENES_CSV
 from odmv.study.records import HELDOUT
 from odmv.study.tables import TITLES, Row
 from odmv.study.tables import tables as declared
@@ -103,16 +104,16 @@ def find_runs(paths: list[Path]) -> tuple[list[Run], list[Path]]:
     for p in paths:
         if not p.is_dir():
             raise ReportError(f"{p}: no such folder")
-        for folder in sorted({f.parent for f in p.rglob("metrics.json")}):
+        for folder in sorted({f.parent for f in p.rglob(METRICS_JSON)}):
             try:
-                metrics = json.loads((folder / "metrics.json").read_text())
+                metrics = json.loads((folder / METRICS_JSON).read_text())
             except (OSError, json.JSONDecodeError) as e:
-                raise ReportError(f"{folder / 'metrics.json'}: unreadable ({e})") from None
+                raise ReportError(f"{folder / METRICS_JSON}: unreadable ({e})") from None
             if "test/mae_mm" not in metrics or "model" not in metrics:
-                raise ReportError(f"{folder / 'metrics.json'}: not a test result of odmv.train")
+                raise ReportError(f"{folder / METRICS_JSON}: not a test result of odmv.train")
             runs.append(Run(folder, metrics | _heldout(folder)))
         for log in p.rglob("train.log"):
-            if not (log.parent / "metrics.json").is_file():
+            if not (log.parent / METRICS_JSON).is_file():
                 pending.append(log.parent)
     return runs, sorted(set(pending))
 

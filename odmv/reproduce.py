@@ -35,8 +35,8 @@ from omegaconf import DictConfig, OmegaConf
 from odmv.classical import classical_row
 from odmv.cli import run_app
 from odmv.config import CONF_DIR, compose_train
+from odmv.io.runfolder import CONFIG, METRICS, PREDICTIONS, SCENES_CSV
 from odmv.losses import OPTIONAL_TERMS
-from odmv.module import PREDICTIONS, SCENES_CSV
 from odmv.report import FIGURE_SCENES, Run, pick_scenes, write_report
 from odmv.study.heldout import HeldoutError, score_heldout
 from odmv.study.records import HELDOUT
@@ -45,7 +45,7 @@ from odmv.study.tables import own_width
 CLASSICAL_DIR = "classical"
 RECORD = "reproduce.json"  # per row: the overrides that trained it and their key
 # a row's record, with the predictions of the figures' scenes (checkpoints and logs stay behind)
-KEPT = ("metrics.json", HELDOUT, RECORD, SCENES_CSV, ".hydra/config.yaml")
+KEPT = (METRICS, HELDOUT, RECORD, SCENES_CSV, CONFIG)
 QUIET = ["trainer.enable_progress_bar=false", "data.progress=false"]  # a run's log is a file
 RECORDERS = {
     "lightning.pytorch.callbacks.ModelCheckpoint",
@@ -91,7 +91,7 @@ class Job:
 def trained_key(folder: Path) -> str | None:
     """The key of the configuration that trained the row in ``folder``: from its saved config,
     else from its record; None for a record kept before either was written."""
-    saved = folder / ".hydra" / "config.yaml"
+    saved = folder / CONFIG
     if saved.is_file():
         return _run_key(OmegaConf.load(saved))
     record = folder / RECORD
@@ -100,7 +100,7 @@ def trained_key(folder: Path) -> str | None:
 
 def finished(*folders: Path) -> Path | None:
     """The first of ``folders`` that holds a test result (``metrics.json``), or None."""
-    return next((f for f in folders if (f / "metrics.json").is_file()), None)
+    return next((f for f in folders if (f / METRICS).is_file()), None)
 
 
 def sweep_overrides(protocol: str, table: str, extra: list[str]) -> list[list[str]]:
@@ -227,12 +227,12 @@ def _train(job: Job, protocol: str, extra: list[str]) -> dict:
         proc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, check=False)
     if job.folder.is_dir():
         tmp.replace(job.folder / "train.out")
-    if proc.returncode != 0 or not (job.folder / "metrics.json").is_file():
+    if proc.returncode != 0 or not (job.folder / METRICS).is_file():
         where = job.folder / "train.out" if job.folder.is_dir() else tmp
         raise ReproduceError(f"{where}: training failed (exit {proc.returncode})")
     record = {"overrides": [f"experiment={protocol}", *extra, *job.overrides], "key": job.key}
     (job.folder / RECORD).write_text(json.dumps(record, indent=1) + "\n")
-    return json.loads((job.folder / "metrics.json").read_text())
+    return json.loads((job.folder / METRICS).read_text())
 
 
 def keep(folder: Path, record: Path) -> bool:
@@ -243,9 +243,9 @@ def keep(folder: Path, record: Path) -> bool:
     committed one stays as it is."""
     if not finished(folder):
         return False
-    metrics = (folder / "metrics.json").read_text()
+    metrics = (folder / METRICS).read_text()
     if trained_key(record) == trained_key(folder) and all(
-        _text(record / name) == _text(folder / name) for name in ("metrics.json", HELDOUT)
+        _text(record / name) == _text(folder / name) for name in (METRICS, HELDOUT)
     ):
         return False
     tmp = record.with_name(f".{record.name}.tmp")

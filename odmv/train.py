@@ -28,6 +28,7 @@ from odmv.cli import (
 from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.ema import WeightEMA
 from odmv.io.atomic import write_json
+from odmv.io.runfolder import METRICS
 from odmv.module import FPPModule
 from odmv.provenance import provenance
 from odmv.sweep import append_row
@@ -170,7 +171,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
             **provenance(dm.root),
         )
         if trainer.is_global_zero:
-            write_json(out_dir / "metrics.json", metrics)
+            write_json(out_dir / METRICS, metrics)
             append_row(
                 out_dir / "metrics.csv",
                 {k: v for k, v in metrics.items() if not isinstance(v, list)},

@@ -20,7 +20,7 @@ import argparse
 
 import numpy as np
 
-from odmv.study.records import load_predictions, run_groups
+from odmv.study.records import PREDICTIONS, load_predictions, run_groups
 
 BANDS_MM = [0.0, 0.5, 2.0, 5.0, 8.0, 12.0, np.inf]
 
@@ -77,7 +77,7 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--tall", type=float, metavar="MM", help="per scene: the pixels above MM")
     ap.add_argument(
         "--file",
-        default="test_predictions.npz",
+        default=PREDICTIONS,
         help="predictions file in each run folder (python -m odmv.study split writes "
         "train_predictions.npz and val_predictions.npz)",
     )

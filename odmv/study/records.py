@@ -1,11 +1,6 @@
-"""The run folder as the study tools read it: what a finished run holds and how it is found.
-
-A finished run (``python -m odmv.train``, or a reproduction's record of one) is a folder with
-``metrics.json`` (its test metrics, settings and provenance), and beside it where they were
-kept: ``heldout.json`` (its scores on the held-out set), ``test_scenes.csv`` (per-scene
-errors), ``test_predictions.npz`` (predicted and true depth in mm), ``.hydra/config.yaml`` and
-``checkpoints/`` (``best-EPOCH.ckpt``, ``last.ckpt``).
-"""
+"""The run folder as the study tools read it: how finished runs are found and read (what a
+run folder holds: :mod:`odmv.io.runfolder`; checkpoints: ``checkpoints/best-EPOCH.ckpt`` and
+``last.ckpt``)."""
 
 from __future__ import annotations
 
@@ -17,10 +12,9 @@ import hydra
 import numpy as np
 
 from odmv.config import CONF_DIR  # noqa: F401  (registers the config resolvers)
-from odmv.module import PREDICTIONS, SCENES_CSV, load_module
+from odmv.io.runfolder import HELDOUT, METRICS, PREDICTIONS, SCENES_CSV
+from odmv.module import load_module
 
-METRICS = "metrics.json"
-HELDOUT = "heldout.json"  # a run's held-out metrics (odmv.study.heldout)
 __all__ = ["HELDOUT", "METRICS", "PREDICTIONS", "SCENES_CSV"]
 
 

@@ -24,8 +24,9 @@ import numpy as np
 import torch
 
 from odmv.io.atomic import write_json
+from odmv.io.runfolder import METRICS, PREDICTIONS, SCENES_CSV
 from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_results
-from odmv.module import PREDICTIONS, SCENES_CSV, subset_masks, write_scene_rows
+from odmv.module import subset_masks, write_scene_rows
 from odmv.study.records import run_data
 
 
@@ -56,7 +57,7 @@ def rescore(run: Path) -> list[str]:
         k: float(np.float32(v))
         for k, v in subset_results("test", {k: e.compute() for k, e in errors.items()}).items()
     }
-    metrics = json.loads((run / "metrics.json").read_text())
+    metrics = json.loads((run / METRICS).read_text())
     for k, v in new.items():
         if k in metrics and not math.isclose(v, metrics[k], rel_tol=1e-5, abs_tol=1e-9):
             raise SystemExit(
@@ -68,7 +69,7 @@ def rescore(run: Path) -> list[str]:
         old_columns = next(csv.reader(fh))
     if added or set(rows[0]) - set(old_columns):
         write_scene_rows(run, rows)
-        write_json(run / "metrics.json", metrics | {k: new[k] for k in added})
+        write_json(run / METRICS, metrics | {k: new[k] for k in added})
     return added
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from odmv.study.heights import BANDS_MM
-from odmv.study.records import load_predictions, run_data, run_groups
+from odmv.study.records import METRICS, PREDICTIONS, load_predictions, run_data, run_groups
 
 
 def test_masks(run: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -36,7 +36,7 @@ def test_masks(run: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
 def shadow_row(run: Path, masks: dict) -> list[float]:
     """MAE (mm) on shadowed pixels per height band, then where the first view lights them,
     where it does not, and on all shadowed pixels."""
-    ids, pred, depth = load_predictions(run, "test_predictions.npz")
+    ids, pred, depth = load_predictions(run, PREDICTIONS)
     shadowed = np.stack([masks[str(s)][0] for s in ids]) & np.isfinite(depth)
     lit = np.stack([masks[str(s)][1] for s in ids])
     err, height = np.abs(pred - depth), np.nanmax(depth) - depth
@@ -62,12 +62,12 @@ def main(argv: list[str]) -> None:
     print("|---|---:|" + "---:|" * len(cols))
     masks: dict[str, dict] = {}  # per dataset: one test split's masks
     for group in args.groups:
-        label, folders = run_groups(group, "test_predictions.npz")
+        label, folders = run_groups(group, PREDICTIONS)
         if not folders:
             raise SystemExit(f"error: {group}: no finished runs (no test_predictions.npz)")
         rows = []
         for f in folders:
-            dataset = json.loads((f / "metrics.json").read_text())["dataset"]
+            dataset = json.loads((f / METRICS).read_text())["dataset"]
             if dataset not in masks:
                 masks[dataset] = test_masks(f)
             rows.append(shadow_row(f, masks[dataset]))

@@ -16,7 +16,7 @@ import json
 
 import numpy as np
 
-from odmv.study.records import run_groups
+from odmv.study.records import METRICS, SCENES_CSV, run_groups
 
 
 def _stat(values: list[float]) -> str:
@@ -40,12 +40,12 @@ def main(argv: list[str]) -> int:
     )
     print("|---|---:|" + "---:|" * (4 + len(families)))
     for arg in args:
-        label, folders = run_groups(arg, "metrics.json")
-        m = [json.loads((f / "metrics.json").read_text()) for f in folders]
+        label, folders = run_groups(arg, METRICS)
+        m = [json.loads((f / METRICS).read_text()) for f in folders]
         per_family: dict[str, list[float]] = {f: [] for f in families}
         worst = []
         for f in folders:
-            scenes = f / "test_scenes.csv"
+            scenes = f / SCENES_CSV
             if not scenes.is_file():  # per-scene figures unknown: that run leaves them out
                 continue
             rows = list(csv.DictReader(scenes.open()))
