@@ -37,9 +37,11 @@ from odmv.cli import run_app
 from odmv.config import CONF_DIR, compose_train
 from odmv.io.runfolder import CONFIG, METRICS, PREDICTIONS, SCENES_CSV
 from odmv.losses import OPTIONAL_TERMS
-from odmv.report import FIGURE_SCENES, Run, pick_scenes, write_report
+from odmv.report import write_report
+from odmv.study.figures import FIGURE_SCENES, pick_scenes
 from odmv.study.heldout import HeldoutError, score_heldout
 from odmv.study.records import HELDOUT
+from odmv.study.results import Run
 from odmv.study.tables import own_width
 
 CLASSICAL_DIR = "classical"
