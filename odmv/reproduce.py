@@ -11,7 +11,8 @@ the figures show, not its checkpoints) are also kept in ``records`` beside the r
 committed with it: a fresh checkout continues the reproduction from them instead of training
 those rows again. Rows that are the same configuration in two tables (ODMV-Net at S = 4 is the
 last row of all three) are trained once. Seed 0 of every row runs before seed 1, so a partial
-reproduction already fills every table.
+reproduction already fills every table. A study runs its own rows the same way (``rows``,
+NAME: [override, ...], or ``study=NAME`` from conf/study/), summarized in ``study.md``.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import shutil
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import hydra
@@ -35,6 +36,7 @@ from omegaconf import DictConfig, OmegaConf
 from odmv.classical import classical_row
 from odmv.cli import run_app
 from odmv.config import CONF_DIR, compose_train
+from odmv.io.atomic import write_json, write_text
 from odmv.io.runfolder import CONFIG, METRICS, PREDICTIONS, SCENES_CSV
 from odmv.losses import OPTIONAL_TERMS
 from odmv.report import write_report
@@ -42,9 +44,11 @@ from odmv.study.figures import FIGURE_SCENES, pick_scenes
 from odmv.study.heldout import HeldoutError, score_heldout
 from odmv.study.records import HELDOUT
 from odmv.study.results import Run
+from odmv.study.summarize import summary_lines
 from odmv.study.tables import own_width
 
 CLASSICAL_DIR = "classical"
+STUDY = "study.md"  # the table of a study's own rows
 RECORD = "reproduce.json"  # per row: the overrides that trained it and their key
 # a row's record, with the predictions of the figures' scenes (checkpoints and logs stay behind)
 KEPT = (METRICS, HELDOUT, RECORD, SCENES_CSV, CONFIG)
@@ -66,6 +70,8 @@ class Job:
     folder: Path
     key: str  # hash of the resolved training config
     record: Path  # where its results are kept beside the report
+    table: bool = False  # a row of the paper's tables
+    rows: set[str] = field(default_factory=set)  # the study rows (labels) it is
 
     def result(self) -> Path | None:
         """The folder holding the row's test result: its run folder, else its record."""
@@ -169,6 +175,33 @@ def _without_nulls(d):
     return d
 
 
+def _table_rows(protocol: str, tables: list[str], extra: list[str], seed: int):
+    """(name, overrides, config) of each row of the tables' sweeps at ``seed``, named by what
+    the row is (net, views, Table I row, a width of its own)."""
+    for table in tables:
+        for ov in sweep_overrides(protocol, table, extra):
+            ov = [o for o in ov if not o.startswith("seed=")] + [f"seed={seed}"]
+            cfg = compose_train([f"experiment={protocol}", *extra, *ov])
+            name = f"{cfg.model.name}-s{len(cfg.data.views)}"
+            if cfg.model.name == "odmvnet":
+                name += f"-{cfg.ablation}"
+            if own_width(cfg) is not None:
+                name += f"-w{own_width(cfg)}"  # a row at another width than the protocol's
+            yield f"{name}-seed{seed}", ov, cfg
+
+
+def _study_rows(protocol: str, rows: dict, extra: list[str], seed: int):
+    """(name, overrides, config) of each of a study's own rows (NAME: [override, ...]) at
+    ``seed``."""
+    for label, overrides in rows.items():
+        ov = [*overrides, f"seed={seed}"]
+        try:
+            cfg = compose_train([f"experiment={protocol}", *extra, *ov])
+        except Exception as e:  # Hydra's composition errors name the bad override
+            raise ReproduceError(f"rows.{label}: {e}") from None
+        yield label, f"{label}-seed{seed}", ov, cfg
+
+
 def plan(
     protocol: str,
     tables: list[str],
@@ -176,33 +209,33 @@ def plan(
     extra: list[str],
     runs_dir: Path,
     records: Path | None = None,
+    rows: dict | None = None,
 ) -> list[Job]:
-    """Every distinct run of the reproduction, seed-major, each with its folder (named by the
-    row; a configuration that two tables share is one run) and its record in ``records``."""
+    """Every distinct run of the reproduction (the tables' rows, then a study's own ``rows``),
+    seed-major, each with its folder (named by the row; a configuration that two rows share is
+    one run) and its record in ``records``."""
     records = runs_dir / "records" if records is None else records
     base = compose_train([f"experiment={protocol}", *extra])
     seeds = list(base.seeds) if seeds is None else list(seeds)
     jobs: dict[str, Job] = {}
     for seed in seeds:
-        for table in tables:
-            for ov in sweep_overrides(protocol, table, extra):
-                ov = [o for o in ov if not o.startswith("seed=")] + [f"seed={seed}"]
-                cfg = compose_train([f"experiment={protocol}", *extra, *ov])
-                views = len(cfg.data.views)
-                name = f"{cfg.model.name}-s{views}"
-                if cfg.model.name == "odmvnet":
-                    name += f"-{cfg.ablation}"
-                if own_width(cfg) is not None:
-                    name += f"-w{own_width(cfg)}"  # a row at another width than the protocol's
-                key = _run_key(cfg)
-                name += f"-seed{seed}"
-                job = jobs.setdefault(key, Job(ov, seed, runs_dir / name, key, records / name))
-                taken = next((j for j in jobs.values() if j.folder.name == name), job)
-                if taken is not job:
-                    raise ReproduceError(
-                        f"{name}: two rows would share this folder ({' '.join(taken.overrides)}"
-                        f" and {' '.join(ov)}); give one of them its own setting"
-                    )
+        found = [
+            *((None, *r) for r in _table_rows(protocol, tables, extra, seed)),
+            *_study_rows(protocol, rows or {}, extra, seed),
+        ]
+        for label, name, ov, cfg in found:
+            key = _run_key(cfg)
+            job = jobs.setdefault(key, Job(ov, seed, runs_dir / name, key, records / name))
+            if label is None:
+                job.table = True
+            else:
+                job.rows.add(label)
+            taken = next((j for j in jobs.values() if j.folder.name == name), job)
+            if taken is not job:
+                raise ReproduceError(
+                    f"{name}: two rows would share this folder ({' '.join(taken.overrides)}"
+                    f" and {' '.join(ov)}); give one of them its own setting"
+                )
     return list(jobs.values())
 
 
@@ -233,7 +266,7 @@ def _train(job: Job, protocol: str, extra: list[str]) -> dict:
         where = job.folder / "train.out" if job.folder.is_dir() else tmp
         raise ReproduceError(f"{where}: training failed (exit {proc.returncode})")
     record = {"overrides": [f"experiment={protocol}", *extra, *job.overrides], "key": job.key}
-    (job.folder / RECORD).write_text(json.dumps(record, indent=1) + "\n")
+    write_json(job.folder / RECORD, record)
     return json.loads((job.folder / METRICS).read_text())
 
 
@@ -294,7 +327,7 @@ def reproduce(cfg: DictConfig) -> Path:
     protocol, extra = cfg.protocol, list(cfg.overrides or [])
     runs_dir, out, records = Path(cfg.runs_dir), Path(cfg.out), Path(cfg.records)
     t0 = time.perf_counter()
-    jobs = plan(protocol, list(cfg.tables), cfg.seeds, extra, runs_dir, records)
+    jobs = plan(protocol, list(cfg.tables), cfg.seeds, extra, runs_dir, records, cfg.rows)
     base = compose_train([f"experiment={protocol}", *extra])
     dm = hydra.utils.instantiate(base.data, _convert_="all")
     dm.prepare_data()  # renders the protocol's dataset once; every row reads it
@@ -335,7 +368,14 @@ def reproduce(cfg: DictConfig) -> Path:
             f"(shadowed {m['test/mae_mm_shadowed']:.4f} mm)",
             flush=True,
         )
-    folders = [j.result() for j in jobs]
+    rows = dict(cfg.rows or {})
+    if rows:  # a study's own rows: one table of them, each row's seeds together
+        groups = [(label, [j.result() for j in jobs if j.rows & {label}]) for label in rows]
+        write_text(out / STUDY, "\n".join(summary_lines(groups)) + "\n")
+        print(f"study: {out / STUDY}", flush=True)
+    if not cfg.tables:
+        return out
+    folders = [j.result() for j in jobs if j.table]
     if cfg.classical:
         classical, kept = runs_dir / CLASSICAL_DIR, records / CLASSICAL_DIR
         if not finished(classical, kept):

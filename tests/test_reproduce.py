@@ -345,6 +345,45 @@ def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, 
     assert list(out.glob("fig6_*.png")) and "missing" in table
 
 
+def test_a_study_of_its_own_rows_trains_each_once_and_tables_them(tiny_dataset, tmp_path, capsys):
+    overrides = [
+        "data=exr",
+        f"root={tiny_dataset}",
+        "data.resolution=32",
+        "data.batch_size=2",
+        f"data.cache_dir={tmp_path}/cache",
+        "trainer.max_epochs=1",
+        "trainer.limit_train_batches=2",
+        "trainer.enable_model_summary=false",
+        "log_images=0",
+    ]
+    runs, out = tmp_path / "runs", tmp_path / "study"
+    rows = {
+        "plain": ["model=unet", "widths.unet=4"],
+        "l1": ["model=unet", "widths.unet=4", "alphas.unet=0"],
+        "again": ["widths.unet=4", "model=unet"],  # the configuration of `plain`: one run
+    }
+    cfg = OmegaConf.merge(
+        _reproduce_cfg(overrides, runs, out),
+        {"tables": [], "classical": False, "heldout": 0, "rows": rows},
+    )
+    reproduce(cfg)
+    assert sorted(p.name for p in runs.iterdir() if not p.name.startswith(".")) == [
+        "l1-seed0",
+        "plain-seed0",
+    ]
+    assert not (out / "tables.md").exists()  # no table of the paper was asked for
+    table = {r.split("|")[1].strip(): r.split("|")[2:-1] for r in (out / "study.md").open()}
+    for label, folder in (("plain", "plain-seed0"), ("l1", "l1-seed0"), ("again", "plain-seed0")):
+        m = json.loads((runs / folder / "metrics.json").read_text())
+        assert [c.strip() for c in table[label][:2]] == ["1", f"{m['test/mae_mm']:.3f}"]
+    capsys.readouterr()
+    reproduce(cfg)  # resumable like the tables: nothing is trained again
+    assert "(2 done)" in capsys.readouterr().out
+    with pytest.raises(ReproduceError, match="rows.bad"):
+        plan("mini", [], [0], overrides, runs, rows={"bad": ["model=nonet"]})
+
+
 def _reproduce_cfg(overrides, runs, out):
     return OmegaConf.create(
         {
@@ -355,6 +394,7 @@ def _reproduce_cfg(overrides, runs, out):
             "classical": True,
             "heldout": 4,
             "retrain": [],
+            "rows": {},
             "runs_dir": str(runs),
             "out": str(out),
             "records": str(out / "runs"),

@@ -8,6 +8,7 @@ def test_summarize_scores_a_run_and_a_record_that_kept_only_its_metrics(trained,
     record = tmp_path / "record"  # a committed reproduction record: metrics.json alone
     record.mkdir()
     shutil.copy(run / "metrics.json", record / "metrics.json")
+    (record / "heldout.json").write_text('{"test/mae_mm": 0.123}')  # its held-out score
     assert summarize.main([f"run={run}", f"record={record}", f"none={tmp_path}/missing*"]) == 0
     rows = {
         r.split("|")[1].strip(): r.split("|")[2:-1] for r in capsys.readouterr().out.splitlines()
@@ -15,7 +16,8 @@ def test_summarize_scores_a_run_and_a_record_that_kept_only_its_metrics(trained,
     mae = f"{metrics['test/mae_mm']:.3f}"
     assert [c.strip() for c in rows["run"][:2]] == ["1", mae]
     assert [c.strip() for c in rows["record"][:2]] == ["1", mae]
+    assert rows["record"][4].strip() == "0.123" and rows["run"][4].strip() == "–"
     # the record has no per-scene file: no family figures and no worst scene
-    assert [c.strip() for c in rows["record"][4:]] == ["–"] * 4
+    assert [c.strip() for c in rows["record"][5:]] == ["–"] * 4
     assert "–" not in rows["run"][-1]  # the run names its worst scene
-    assert [c.strip() for c in rows["none"]] == ["0"] + ["–"] * 7
+    assert [c.strip() for c in rows["none"]] == ["0"] + ["–"] * 8
