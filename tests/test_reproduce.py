@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from odmv.classical import classical_row
-from odmv.config import CONF_DIR
+from odmv.config import CONF_DIR, compose_train
 from odmv.config import contenders as contenders_of
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import footprint_from_depth, subset_masks
@@ -30,6 +30,7 @@ from odmv.reproduce import (
 )
 from odmv.rig import VIEW_NAMES
 from odmv.study.records import HELDOUT
+from odmv.study.tables import ABLATION, VIEWS, tables
 
 
 def test_depth_in_mm_under_bf16_autocast_matches_float32():
@@ -114,6 +115,16 @@ def _compose(overrides, hydra_cfg=False):
 
 
 def test_sweeps_expand_to_the_tables_rows():
+    # the sweeps train the rows the report declares (odmv.study.tables), in its order
+    ablation = [j[0] for j in sweep_overrides("mini", "ablation", []) if "seed=0" in j]
+    assert ablation == [f"ablation={key}" for key, _, _ in ABLATION]
+    views = [j[0] for j in sweep_overrides("mini", "views", []) if "seed=0" in j]
+    assert views == [f"views={s}" for s in range(1, len(VIEWS) + 1)]
+    table2 = [r for r in tables("mini")["table2"] if r.model != "classical"]
+    assert [r.label for r in table2] == [
+        compose_train(["experiment=mini", f"model={m}"]).model.table2.label
+        for m in compose_train(["experiment=mini"]).contenders
+    ]
     jobs = sweep_overrides("mini", "models", [])
     assert len(jobs) == 14  # seven rows x the mini protocol's two seeds
     assert ["model=unet_s4", "seed=0"] in jobs
