@@ -132,6 +132,41 @@ class RayCaster:
         return inside, lit, u, geom.astype(dt, copy=False)
 
 
+GLOSS_EXPONENT = 60.0  # Blinn-Phong exponent of the gloss shift's specular lobe: a narrow highlight
+TEXTURE_CELL_MM = (0.9, 1.4)  # the texture shift's printed marks: a grid (x, y) on the parts
+
+
+def texture_factor(points: np.ndarray, on_part: np.ndarray, contrast: float) -> np.ndarray:
+    """Albedo factor (float32) of the printed marks: 1 - ``contrast`` on a mark of a part, 1
+    elsewhere. The marks are the cells of a grid in world x, y (TEXTURE_CELL_MM) whose index
+    sum is a multiple of three: sharp-edged blocks like labels and silkscreen."""
+    i = np.floor(points[:, 0] / TEXTURE_CELL_MM[0]).astype(np.int64)
+    j = np.floor(points[:, 1] / TEXTURE_CELL_MM[1]).astype(np.int64)
+    mark = on_part & ((i + j) % 3 == 0)
+    return np.where(mark, np.float32(1 - contrast), np.float32(1)).astype(np.float32)
+
+
+def specular(
+    points: np.ndarray,
+    normals: np.ndarray,
+    lit: np.ndarray,
+    projector_centre: np.ndarray,
+    camera_centre: np.ndarray,
+    ref_mm: float,
+) -> np.ndarray:
+    """Blinn-Phong lobe (n . h)^GLOSS_EXPONENT of a projector seen from the camera, with the
+    projector's fall-off (ref / distance)^2, on lit points; float32."""
+    dt = points.dtype
+    to_p = projector_centre.astype(dt) - points
+    dist2 = np.einsum("ij,ij->i", to_p, to_p)
+    to_c = camera_centre.astype(dt) - points
+    half = to_p / np.sqrt(dist2)[:, None] + to_c / np.linalg.norm(to_c, axis=1, keepdims=True)
+    half /= np.linalg.norm(half, axis=1, keepdims=True)
+    n_h = np.clip(np.einsum("ij,ij->i", normals, half), 0, 1)
+    lobe = n_h**GLOSS_EXPONENT * (ref_mm**2 / dist2)
+    return np.where(lit, lobe, 0).astype(np.float32)
+
+
 def _pattern_harmonics(cfg: RenderConfig, n_terms: int = 12) -> np.ndarray:
     """Cosine-series coefficients a_h of (A + B cos phi)^gamma (exact for gamma = 1)."""
     if cfg.projector_gamma == 1.0:
@@ -231,9 +266,15 @@ def render_scene(
     cfg: RenderConfig,
     rng: np.random.Generator,
     images: str = "full",
+    texture: float = 0.0,
+    gloss: float = 0.0,
+    dead_view: str | None = None,
 ) -> Rendered:
     """Render ground truth and fringe images of ``scene``. ``images='training'`` renders only
-    the (train_frequency, train_step) image per view."""
+    the (train_frequency, train_step) image per view. The surface and failure shifts
+    (odmv.sim.shifts): ``texture`` (contrast of printed marks on the parts), ``gloss`` (the
+    specular lobe's peak, in units of the projector's irradiance) and ``dead_view`` (a projector
+    that gives no light); the ground truth does not change with them."""
     cam = rig.camera_at(width_px, height_px)
     projectors = rig.projectors()
     ref = rig.projector.distance_mm
@@ -247,16 +288,22 @@ def render_scene(
         raise ValueError(
             f"{(prim < 0).sum()} camera rays hit nothing; the ground plane must fill the view"
         )
+    if texture:
+        albedo = albedo * texture_factor(pts, prim >= 2, texture)  # faces 0, 1: the ground
     # ground truth from the pixel-centre samples, hit points refined in float64
     c = grid.centre
     exact = caster.exact_points(grid.origins[c], grid.dirs[c], prim[c])
     depth = cam.depth(exact).reshape(H, W).astype(np.float32)
     shadow_origins = pts + np.float32(cfg.shadow_epsilon_mm) * nrm
-    u_all, geom_all, lit_gt, foot_gt, coord_gt = {}, {}, {}, {}, {}
+    u_all, geom_all, spec_all, lit_gt, foot_gt, coord_gt = {}, {}, {}, {}, {}, {}
     for v in views:
         inside, lit, u_all[v], geom_all[v] = caster.lit_by(
             pts, nrm, projectors[v], ref, shadow_origins
         )
+        if gloss:
+            spec_all[v] = np.float32(gloss) * specular(
+                pts, nrm, lit, projectors[v].center, cam.center, ref
+            )
         lit_gt[v] = lit[c].reshape(H, W)
         foot_gt[v] = inside[c].reshape(H, W)
         u_exact = projectors[v].project(exact)[:, 0]
@@ -283,6 +330,10 @@ def render_scene(
     for v in views:
         u, geom = u_all.pop(v), geom_all.pop(v)
         g = albedo * (np.float32(cfg.projector_irradiance) * geom)
+        if v in spec_all:  # highlights are the light's colour, not the surface's
+            g = g + np.float32(cfg.projector_irradiance) * spec_all.pop(v)
+        if v == dead_view:
+            g = np.zeros_like(g)
         for fi in freqs:
             phi = (2 * np.pi / fringe.periods_px[fi]) * u
             c1, s1 = np.cos(phi), np.sin(phi)

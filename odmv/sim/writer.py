@@ -40,6 +40,7 @@ from odmv.io.manifest import (
 from odmv.rig import Rig, check_views, size_hw
 from odmv.sim.render import RenderConfig, Rendered, render_scene
 from odmv.sim.scenes import Scene, build_scene, choose_family, draw_spec, mesh_files_in
+from odmv.sim.shifts import NOMINAL_SHIFT, Shift
 
 PARTIAL_PREFIX = ".partial-"
 
@@ -65,7 +66,8 @@ class SimSettings:
     splits: dict | None = field(default_factory=lambda: {"train": 0.8, "val": 0.1, "test": 0.1})
     fringe: FringeSpec = field(default_factory=FringeSpec)
     render: RenderConfig = field(default_factory=RenderConfig)
-    rig: Rig = field(default_factory=Rig)
+    rig: Rig = field(default_factory=Rig)  # the nominal rig: the manifest's calibration
+    shift: Shift = NOMINAL_SHIFT  # what renders the images differs from it (odmv.sim.shifts)
     compression: str = "zstd"
     fringe_dtype: str = "float32"
 
@@ -95,6 +97,8 @@ class SimSettings:
             kw["render"] = RenderConfig(**c["render"])
         if "rig" in c:
             kw["rig"] = Rig.from_dict(c["rig"])
+        if c.get("shift"):
+            kw["shift"] = Shift(**c["shift"])
         return cls(**kw)
 
     def complete(self) -> bool:
@@ -115,6 +119,8 @@ class SimSettings:
             "mesh_dir": str(self.mesh_dir) if self.mesh_dir else None,
             "render": asdict(self.render),
             "fringe_dtype": self.fringe_dtype,
+            # a nominal render keeps the key it had before shifts existed
+            **({} if self.shift.nominal else {"shift": self.shift.to_dict()}),
         }
 
 
@@ -181,7 +187,7 @@ def render_and_write(s: SimSettings, index: int, spec: dict | None = None) -> st
         spec = draw_scene_spec(s, index)
     scene = build_scene(spec)
     noise_seed = [s.seed, index, 1]
-    r = render_scene(
+    r = _render(
         scene,
         s.rig,
         s.height_px,
@@ -189,8 +195,9 @@ def render_and_write(s: SimSettings, index: int, spec: dict | None = None) -> st
         s.fringe,
         s.views,
         s.render,
+        s.shift,
         np.random.default_rng(noise_seed),
-        images=s.images,
+        s.images,
     )
     tmp = final.with_name(f"{PARTIAL_PREFIX}{sid}-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -246,14 +253,47 @@ def render_config(m: Manifest) -> RenderConfig:
     return RenderConfig(**m.extra.get("simulation", {}).get("render", {}))
 
 
+def shift_of(m: Manifest) -> Shift:
+    """The shift a synthetic dataset was rendered under (its manifest's record)."""
+    return Shift(**m.extra.get("simulation", {}).get("shift", {}))
+
+
+def _render(scene, rig, height_px, width_px, fringe, views, cfg, shift: Shift, rng, images):
+    """render_scene through ``shift``: its rig and optics, its surfaces and dead projector."""
+    return render_scene(
+        scene,
+        shift.rig(rig),
+        height_px,
+        width_px,
+        fringe,
+        views,
+        shift.render(cfg),
+        rng,
+        images,
+        texture=shift.texture_contrast,
+        gloss=shift.gloss,
+        dead_view=shift.dead_view,
+    )
+
+
 def rerender(root: str | Path, sid: str) -> tuple[Scene, Rendered]:
     """Render a stored scene again from its ``scene.json`` and the manifest (bit-identical)."""
     m = load_manifest(root)
     record = scene_record(m, sid)
-    cfg = render_config(m)
     scene = build_scene(record["spec"])
     rng = np.random.default_rng(record["noise_seed_sequence"])
-    r = render_scene(scene, m.rig, m.height_px, m.width_px, m.fringe, m.views, cfg, rng, m.images)
+    r = _render(
+        scene,
+        m.rig,
+        m.height_px,
+        m.width_px,
+        m.fringe,
+        m.views,
+        render_config(m),
+        shift_of(m),
+        rng,
+        m.images,
+    )
     return scene, r
 
 
