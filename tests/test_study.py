@@ -1,5 +1,7 @@
 """python -m odmv.study: one command for the analysis verbs, each with its own --help."""
 
+from pathlib import Path
+
 import pytest
 
 from odmv.study import VERBS
@@ -27,3 +29,37 @@ def test_an_unknown_verb_is_one_line_naming_the_verbs(capsys):
     assert main(["nope"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: 'nope' is no verb of odmv.study") and "summarize" in err
+
+
+def test_robustness_scores_runs_and_the_classical_method_on_shifted_twins(trained, tmp_path):
+    from odmv.io.manifest import load_manifest
+    from odmv.sim.shifts import Shift
+    from odmv.study import robustness
+
+    run, metrics = trained
+    source = Path(metrics["dataset"])
+    shifts = [Shift("gamma", 2.2), Shift("dead_view", "down")]
+    scores = robustness.score_run(run, shifts, scenes=3, threads=1)
+    assert list(scores) == ["nominal", "gamma:2.2", "dead_view:down"]
+    assert all(s["scenes"] == 3 and s["test/mae_mm"] > 0 for s in scores.values())
+    data = Path(scores["gamma:2.2"]["dataset"])
+    m = load_manifest(data)
+    # the twin's scenes (seed + 2), the nominal calibration, the shift recorded
+    nominal = load_manifest(source)
+    assert m.extra["simulation"]["seed"] == nominal.extra["simulation"]["seed"] + 2
+    assert m.rig == nominal.rig
+    assert m.extra["simulation"]["shift"]["name"] == "gamma"
+    stamp = (run / "robustness.json").stat().st_mtime_ns
+    assert robustness.score_run(run, shifts[:1], scenes=3) == {
+        k: scores[k] for k in ("nominal", "gamma:2.2", "dead_view:down")
+    }
+    assert (run / "robustness.json").stat().st_mtime_ns == stamp  # nothing scored again
+    classical = robustness.score_classical(source, shifts, scenes=3)
+    # 12-step phase shifting cancels the gamma harmonics below the 12th: gamma barely moves it
+    assert abs(classical["gamma:2.2"]["test/mae_mm"] - classical["nominal"]["test/mae_mm"]) < 0.05
+    rows = {"odmvnet S=4": [scores], "classical": [classical]}
+    md = robustness.write_tables(rows, shifts, tmp_path).read_text()
+    ratio = scores["gamma:2.2"]["test/mae_mm"] / scores["nominal"]["test/mae_mm"]
+    assert f"{scores['gamma:2.2']['test/mae_mm']:.3f} ({ratio:.2f}x)" in md
+    assert "% covered" in md and (tmp_path / "robustness.png").is_file()
+    assert len((tmp_path / "robustness.csv").read_text().splitlines()) == 1 + 2 * 3

@@ -6,6 +6,7 @@ verbs behind one command, ``python -m odmv.study <verb> ...`` (``--help`` lists 
 VERBS = {
     "summarize": "summarize",
     "heldout": "heldout",
+    "robustness": "robustness",
     "heights": "heights",
     "shadows": "shadows",
     "split": "split",

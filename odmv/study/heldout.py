@@ -24,6 +24,7 @@ from pathlib import Path
 
 from odmv.io.atomic import write_json
 from odmv.io.manifest import MANIFEST
+from odmv.sim.shifts import Shift
 from odmv.sim.writer import SimSettings, simulate
 from odmv.study.records import HELDOUT, METRICS, best_checkpoint
 
@@ -34,18 +35,20 @@ class HeldoutError(ValueError):
     """A one-line error naming the dataset or run at fault."""
 
 
-def heldout_dataset(source: Path, scenes: int = SCENES) -> Path:
-    """Render (or finish) the held-out twin of dataset ``source`` (``scenes`` scenes); returns
-    its folder."""
+def twin_dataset(
+    source: Path, out: Path, scenes: int, seed: int, images: str, shift: Shift | None = None
+) -> Path:
+    """Render (or finish) into ``out`` a test-only twin of dataset ``source``: its rig, fringes,
+    renderer and scene mix, ``scenes`` scenes drawn from ``seed``, under ``shift`` (None: the
+    nominal twin); returns ``out``."""
     try:
         m = json.loads((source / MANIFEST).read_text())
     except (OSError, json.JSONDecodeError) as e:
         raise HeldoutError(f"{source / MANIFEST}: unreadable ({e})") from None
     sim = dict(m.get("simulation") or {})
     if not sim:
-        raise HeldoutError(f"{source}: not rendered by odmv.simulate; it has no held-out twin")
-    seed = int(sim.get("seed", 0)) + 1
-    out = source.parent / f"heldout{scenes}-{source.name}-seed{seed}"
+        raise HeldoutError(f"{source}: not rendered by odmv.simulate; it has no twin to draw")
+    sim.pop("shift", None)  # a twin of a shifted set is drawn nominal unless asked
     settings = SimSettings.from_dict(
         {
             **sim,
@@ -55,12 +58,13 @@ def heldout_dataset(source: Path, scenes: int = SCENES) -> Path:
             "fringe": m["fringe"],
             "scenes": scenes,
             "seed": seed,
-            "images": "training",
+            "images": images,
             "splits": {"train": 0, "val": 0, "test": 1},
+            **({"shift": shift.to_dict()} if shift is not None and not shift.nominal else {}),
         }
     )
     if not settings.complete():
-        print(f"rendering the held-out set into {out} (once)", flush=True)
+        print(f"rendering {out} (once)", flush=True)
         simulate(settings, workers=1, progress=False)
     rendered = json.loads((out / MANIFEST).read_text())
     if rendered["rig"] != m["rig"] or rendered["fringe"] != m["fringe"]:
@@ -68,15 +72,28 @@ def heldout_dataset(source: Path, scenes: int = SCENES) -> Path:
     return out
 
 
-def score_heldout(run: Path, threads: int | None = None, scenes: int = SCENES) -> dict:
-    """Score ``run``'s best checkpoint on its dataset's held-out set of ``scenes`` scenes
-    (rendered on first use) and write the metrics to ``run/heldout.json``; returns them.
-    ``threads``: torch's intra-op thread count for the evaluation (None: torch's default)."""
-    ckpt, metrics = best_checkpoint(run)
+def heldout_dataset(source: Path, scenes: int = SCENES) -> Path:
+    """Render (or finish) the held-out twin of dataset ``source`` (``scenes`` scenes); returns
+    its folder."""
+    seed = _seed(source) + 1
+    out = source.parent / f"heldout{scenes}-{source.name}-seed{seed}"
+    return twin_dataset(source, out, scenes, seed, "training")
+
+
+def _seed(source: Path) -> int:
+    try:
+        return int(json.loads((source / MANIFEST).read_text())["simulation"].get("seed", 0))
+    except (OSError, json.JSONDecodeError, KeyError) as e:
+        raise HeldoutError(f"{source / MANIFEST}: no simulation record ({e})") from None
+
+
+def evaluate_on(run: Path, data: Path, threads: int | None, what: str) -> dict:
+    """Test metrics of ``run``'s best checkpoint on dataset ``data`` (``python -m
+    odmv.evaluate`` in a clean process; ``what`` names the scoring in errors)."""
+    ckpt, _ = best_checkpoint(run)
     if not ckpt.is_file():
         raise HeldoutError(f"{run}: its best checkpoint {ckpt.name} is gone; it cannot be scored")
-    data = heldout_dataset(Path(metrics["dataset"]), scenes)
-    scratch = run / ".heldout"
+    scratch = run / f".{what}"
     shutil.rmtree(scratch, ignore_errors=True)
     cmd = [
         sys.executable,
@@ -92,11 +109,19 @@ def score_heldout(run: Path, threads: int | None = None, scenes: int = SCENES) -
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if proc.returncode != 0 or not (scratch / METRICS).is_file():
         last = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or ["no output"]
-        raise HeldoutError(f"{run}: held-out scoring failed (exit {proc.returncode}): {last[0]}")
-    held = json.loads((scratch / METRICS).read_text())
-    held["dataset"] = str(data.resolve())
-    write_json(run / HELDOUT, held)
+        raise HeldoutError(f"{run}: {what} scoring failed (exit {proc.returncode}): {last[0]}")
+    metrics = json.loads((scratch / METRICS).read_text())
     shutil.rmtree(scratch, ignore_errors=True)
+    return metrics | {"dataset": str(data.resolve())}
+
+
+def score_heldout(run: Path, threads: int | None = None, scenes: int = SCENES) -> dict:
+    """Score ``run``'s best checkpoint on its dataset's held-out set of ``scenes`` scenes
+    (rendered on first use) and write the metrics to ``run/heldout.json``; returns them.
+    ``threads``: torch's intra-op thread count for the evaluation (None: torch's default)."""
+    _, metrics = best_checkpoint(run)
+    held = evaluate_on(run, heldout_dataset(Path(metrics["dataset"]), scenes), threads, "heldout")
+    write_json(run / HELDOUT, held)
     return held
 
 

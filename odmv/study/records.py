@@ -12,10 +12,10 @@ import hydra
 import numpy as np
 
 from odmv.config import CONF_DIR  # noqa: F401  (registers the config resolvers)
-from odmv.io.runfolder import HELDOUT, METRICS, PREDICTIONS, SCENES_CSV
+from odmv.io.runfolder import HELDOUT, METRICS, PREDICTIONS, ROBUSTNESS, SCENES_CSV
 from odmv.module import load_module
 
-__all__ = ["HELDOUT", "METRICS", "PREDICTIONS", "SCENES_CSV"]
+__all__ = ["HELDOUT", "METRICS", "PREDICTIONS", "ROBUSTNESS", "SCENES_CSV"]
 
 
 class RecordError(ValueError):

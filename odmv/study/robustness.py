@@ -1,0 +1,235 @@
+"""Score finished runs and the classical method on shifted twins of their dataset.
+
+    python -m odmv.study robustness RUN [RUN ...] [--shifts gamma:1.5 gamma:2.2 ...]
+        [--scenes 100] [--classical] [--threads 2] [--out DIR]
+
+Each shift (odmv.sim.shifts, ``NAME:STRENGTH``) renders once, beside the runs' dataset, a
+test-only twin of it under that shift: its rig, fringes, renderer and scene mix, ``scenes``
+scenes from the scene seed after the held-out set's (the dataset's seed + 2: drawn from
+neither the training data nor the held-out set), with the nominal calibration in its manifest.
+The nominal twin of the same scenes is the baseline every ratio is taken against. Each run's
+best checkpoint is scored on every set (``robustness.json`` in the run folder, one entry per
+set, kept: a later call scores only what is missing), the classical method (phase shifting with
+the nominal calibration) too with ``--classical``, and ``--out`` gets ``robustness.md``,
+``robustness.csv`` and ``robustness.png``: MAE per model and set, and its ratio to the model's
+nominal MAE.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+
+from odmv.io.atomic import write_atomic, write_csv, write_json, write_text
+from odmv.io.manifest import MANIFEST
+from odmv.sim.shifts import NOMINAL_SHIFT, Shift, parse_shift
+from odmv.study.heldout import HeldoutError, evaluate_on, twin_dataset
+from odmv.study.records import METRICS, ROBUSTNESS
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+SCENES = 100
+SEED_OFFSET = 2  # after the training data (+0) and the held-out set (+1)
+#: every shift at two strengths: a drift or fault a rig meets, and a larger one
+SHIFTS = (
+    "projector_rotation:0.02",
+    "projector_rotation:0.1",
+    "projector_shift:0.05",
+    "projector_shift:0.2",
+    "camera_focal:0.2",
+    "camera_focal:1",
+    "gamma:1.5",
+    "gamma:2.2",
+    "defocus:0.7",
+    "defocus:1.5",
+    "ambient:0.1",
+    "ambient:0.3",
+    "noise:2",
+    "noise:4",
+    "exposure:0.6",
+    "exposure:1.5",
+    "texture:0.3",
+    "texture:0.6",
+    "gloss:0.5",
+    "gloss:1.5",
+    "dead_view:right",
+    "dead_view:down",
+)
+
+
+def shifted_set(source: Path, shift: Shift, scenes: int = SCENES) -> Path:
+    """The shifted twin of dataset ``source`` (rendered on first use; full sequences, so the
+    classical method can run on it too)."""
+    seed = _source_seed(source) + SEED_OFFSET
+    name = shift.label().replace(":", "_")
+    out = source.parent / f"robust{scenes}-{source.name}-seed{seed}-{name}"
+    return twin_dataset(source, out, scenes, seed, "full", shift)
+
+
+def _source_seed(source: Path) -> int:
+    try:
+        return int(json.loads((source / MANIFEST).read_text())["simulation"]["seed"])
+    except (OSError, json.JSONDecodeError, KeyError) as e:
+        raise HeldoutError(f"{source}: no simulation record to draw a twin from ({e})") from None
+
+
+def score_run(
+    run: Path, shifts: list[Shift], scenes: int = SCENES, threads: int | None = None
+) -> dict:
+    """``run``'s scores on the nominal and every shifted twin of its dataset, kept in
+    ``run/robustness.json`` (each set scored once; the file grows as sets are added)."""
+    path = run / ROBUSTNESS
+    scores = json.loads(path.read_text()) if path.is_file() else {}
+    source = Path(json.loads((run / METRICS).read_text())["dataset"])
+    for shift in [NOMINAL_SHIFT, *shifts]:
+        label = shift.label()
+        if label in scores and scores[label].get("scenes") == scenes:
+            continue
+        data = shifted_set(source, shift, scenes)
+        metrics = evaluate_on(run, data, threads, "robustness")
+        scores[label] = {k: v for k, v in metrics.items() if k.startswith("test/")} | {
+            "scenes": scenes,
+            "dataset": metrics["dataset"],
+        }
+        write_json(path, scores)
+        print(f"{run.name} {label}: MAE {metrics['test/mae_mm']:.4f} mm", flush=True)
+    return scores
+
+
+def score_classical(
+    source: Path, shifts: list[Shift], scenes: int = SCENES, resolution=None
+) -> dict:
+    """The classical method's scores (nominal calibration) on the same sets."""
+    from odmv.classical import classical_row
+
+    scores = {}
+    for shift in [NOMINAL_SHIFT, *shifts]:
+        data = shifted_set(source, shift, scenes)
+        out = data / "classical"
+        if (out / METRICS).is_file():
+            m = json.loads((out / METRICS).read_text())
+        else:
+            m = classical_row(data, out, resolution=resolution)
+        scores[shift.label()] = {k: v for k, v in m.items() if k.startswith("test/")}
+    return scores
+
+
+def _label(run: Path, metrics: dict) -> str:
+    views = len(metrics.get("views") or [])
+    name = f"{metrics.get('model')} S={views}"
+    if metrics.get("model") == "odmvnet" and metrics.get("width"):
+        name += f" w{metrics['width']}"
+    return name
+
+
+def write_tables(rows: dict[str, list[dict]], shifts: list[Shift], out: Path) -> Path:
+    """``robustness.md``, ``robustness.csv`` and ``robustness.png`` of the rows (model label ->
+    each seed's scores by set label)."""
+    labels = ["nominal", *[s.label() for s in shifts]]
+    table, csv_rows = [], []
+    for model, seeds in rows.items():
+        line = [model, str(len(seeds))]
+        nominal = _mean(seeds, "nominal")
+        for label in labels:
+            mae = _mean(seeds, label)
+            ratio = mae / nominal if np.isfinite(mae) and nominal > 0 else np.nan
+            cell = "–" if not np.isfinite(mae) else f"{mae:.3f}"
+            if label != "nominal" and np.isfinite(ratio):
+                cell += f" ({ratio:.2f}x)"
+            coverage = _mean(seeds, label, "test/coverage")
+            if np.isfinite(coverage):  # the classical method scores what it reconstructs
+                cell += f", {100 * coverage:.0f} % covered"
+            line.append(cell)
+            csv_rows.append({"model": model, "set": label, "seeds": len(seeds), "mae_mm": mae,
+                             "ratio_to_nominal": ratio})  # fmt: skip
+        table.append(line)
+    md = [
+        "# Robustness: MAE (mm) on shifted twins, and its ratio to the same model's nominal MAE",
+        "",
+        f"Each set: {_scenes(rows)} scenes; mean over seeds. Shifts: docs/robustness.md. The "
+        "classical method's MAE is over the pixels it reconstructs (their share: covered).",
+        "",
+    ]
+    for start in range(0, len(labels), 8):  # at most eight sets per table: readable widths
+        cols = labels[start : start + 8]
+        md.append("| model | seeds | " + " | ".join(cols) + " |")
+        md.append("|---|---:|" + "---:|" * len(cols))
+        md += ["| " + " | ".join(r[:2] + r[2 + start : 2 + start + 8]) + " |" for r in table]
+        md.append("")
+    write_csv(out / "robustness.csv", csv_rows)
+    _figure(rows, shifts, out / "robustness.png")
+    return write_text(out / "robustness.md", "\n".join(md) + "\n")
+
+
+def _mean(seeds: list[dict], label: str, key: str = "test/mae_mm") -> float:
+    v = [s[label][key] for s in seeds if key in s.get(label, {})]
+    return float(np.mean(v)) if v else np.nan
+
+
+def _scenes(rows: dict[str, list[dict]]) -> str:
+    found = {s.get("scenes") for seeds in rows.values() for d in seeds for s in d.values()}
+    return ", ".join(str(n) for n in sorted(found - {None})) or "?"
+
+
+def _figure(rows: dict[str, list[dict]], shifts: list[Shift], path: Path) -> None:
+    """One panel per shift: each model's MAE ratio to nominal against the strength."""
+    names = list(dict.fromkeys(s.name for s in shifts))
+    cols = min(4, len(names)) or 1
+    fig, axes = plt.subplots(
+        (len(names) + cols - 1) // cols,
+        cols,
+        figsize=(3.2 * cols, 2.6 * ((len(names) + cols - 1) // cols)),
+        squeeze=False,
+    )
+    for ax, name in zip(axes.flat, names, strict=False):
+        group = [s for s in shifts if s.name == name]
+        for model, seeds in rows.items():
+            nominal = _mean(seeds, "nominal")
+            ratio = [_mean(seeds, s.label()) / nominal for s in group]
+            xs = range(len(group)) if name == "dead_view" else [float(s.value) for s in group]
+            ax.plot(list(xs), ratio, marker="o", label=model)
+        if name == "dead_view":
+            ax.set_xticks(range(len(group)), [str(s.value) for s in group])
+        ax.axhline(1.0, color="grey", lw=0.5)
+        ax.set_title(name, fontsize=9)
+        ax.set_ylabel("MAE / nominal", fontsize=8)
+    for ax in list(axes.flat)[len(names) :]:
+        ax.axis("off")
+    axes.flat[0].legend(fontsize=7)
+    fig.tight_layout()
+    write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=90, format="png"))
+    plt.close(fig)
+
+
+def main(argv: list[str]) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("runs", nargs="+", help="globs of finished run folders")
+    ap.add_argument("--shifts", nargs="+", default=list(SHIFTS), metavar="NAME:STRENGTH")
+    ap.add_argument("--scenes", type=int, default=SCENES)
+    ap.add_argument("--classical", action="store_true", help="score the classical method too")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    ap.add_argument("--out", type=Path, default=None, help="folder for the report")
+    args = ap.parse_args(argv)
+    shifts = [parse_shift(s) for s in args.shifts]
+    runs = sorted(
+        {Path(r) for g in args.runs for r in glob.glob(g) if (Path(r) / METRICS).is_file()}
+    )
+    if not runs:
+        raise SystemExit(f"error: no finished runs match {args.runs}")
+    rows: dict[str, list[dict]] = {}
+    for run in runs:
+        metrics = json.loads((run / METRICS).read_text())
+        rows.setdefault(_label(run, metrics), []).append(
+            score_run(run, shifts, args.scenes, args.threads)
+        )
+    if args.classical:
+        source = Path(json.loads((runs[0] / METRICS).read_text())["dataset"])
+        rows["classical (nominal calibration)"] = [score_classical(source, shifts, args.scenes)]
+    if args.out:
+        print(f"report: {write_tables(rows, shifts, args.out)}")
