@@ -37,13 +37,15 @@ from odmv.classical import classical_row
 from odmv.cli import run_app
 from odmv.config import CONF_DIR, compose_train
 from odmv.io.atomic import write_json, write_text
-from odmv.io.runfolder import CONFIG, METRICS, PREDICTIONS, SCENES_CSV
+from odmv.io.runfolder import CONFIG, METRICS, PREDICTIONS, ROBUSTNESS, SCENES_CSV
 from odmv.losses import OPTIONAL_TERMS
 from odmv.report import write_report
+from odmv.sim.shifts import parse_shift
 from odmv.study.figures import FIGURE_SCENES, pick_scenes
 from odmv.study.heldout import HeldoutError, score_heldout
 from odmv.study.records import HELDOUT
 from odmv.study.results import Run
+from odmv.study.robustness import SHIFTS, score_run
 from odmv.study.summarize import summary_lines
 from odmv.study.tables import own_width
 
@@ -51,7 +53,7 @@ CLASSICAL_DIR = "classical"
 STUDY = "study.md"  # the table of a study's own rows
 RECORD = "reproduce.json"  # per row: the overrides that trained it and their key
 # a row's record, with the predictions of the figures' scenes (checkpoints and logs stay behind)
-KEPT = (METRICS, HELDOUT, RECORD, SCENES_CSV, CONFIG)
+KEPT = (METRICS, HELDOUT, ROBUSTNESS, RECORD, SCENES_CSV, CONFIG)
 QUIET = ["trainer.enable_progress_bar=false", "data.progress=false"]  # a run's log is a file
 RECORDERS = {
     "lightning.pytorch.callbacks.ModelCheckpoint",
@@ -280,7 +282,7 @@ def keep(folder: Path, record: Path) -> bool:
         return False
     metrics = (folder / METRICS).read_text()
     if trained_key(record) == trained_key(folder) and all(
-        _text(record / name) == _text(folder / name) for name in (METRICS, HELDOUT)
+        _text(record / name) == _text(folder / name) for name in (METRICS, HELDOUT, ROBUSTNESS)
     ):
         return False
     tmp = record.with_name(f".{record.name}.tmp")
@@ -310,16 +312,20 @@ def _text(path: Path) -> str | None:
     return path.read_text() if path.is_file() else None
 
 
-def score(job: Job, threads: int | None, scenes: int) -> None:
-    """Score a finished row on the held-out set, once, while its checkpoint is on disk."""
-    if (job.folder / HELDOUT).is_file():
-        return
-    held = score_heldout(job.folder, threads, scenes)
-    print(
-        f"    held-out MAE {held['test/mae_mm']:.4f} mm "
-        f"(shadowed {held['test/mae_mm_shadowed']:.4f} mm)",
-        flush=True,
-    )
+def score(job: Job, threads: int | None, cfg: DictConfig) -> None:
+    """Score a finished row on the held-out set and, where ``robustness.rows`` names it, on the
+    shifted twins, once each, while its checkpoint is on disk."""
+    if cfg.heldout and not (job.folder / HELDOUT).is_file():
+        held = score_heldout(job.folder, threads, cfg.heldout)
+        print(
+            f"    held-out MAE {held['test/mae_mm']:.4f} mm "
+            f"(shadowed {held['test/mae_mm_shadowed']:.4f} mm)",
+            flush=True,
+        )
+    rob = cfg.get("robustness") or {}
+    if any(fnmatch.fnmatch(job.folder.name, p) for p in rob.get("rows") or []):
+        shifts = [parse_shift(s) for s in (rob.get("shifts") or SHIFTS)]
+        score_run(job.folder, shifts, rob.get("scenes", 100), threads)
 
 
 def reproduce(cfg: DictConfig) -> Path:
@@ -333,9 +339,9 @@ def reproduce(cfg: DictConfig) -> Path:
     dm.prepare_data()  # renders the protocol's dataset once; every row reads it
     threads = base.get("threads")
     for job in jobs:  # rows finished before they were kept (or by hand) are kept now
-        if cfg.heldout and finished(job.folder) and job.current():
+        if finished(job.folder) and job.current():
             try:
-                score(job, threads, cfg.heldout)
+                score(job, threads, cfg)
             except HeldoutError as e:  # its checkpoint is gone: the row keeps its test result
                 print(f"note: {e}", flush=True)
         if keep(job.folder, job.record):
@@ -360,8 +366,7 @@ def reproduce(cfg: DictConfig) -> Path:
     for k, job in enumerate(todo, 1):
         print(f"[{k}/{len(todo)}] {job.folder.name}: {' '.join(job.overrides)}", flush=True)
         m = _train(job, protocol, extra)
-        if cfg.heldout:
-            score(job, threads, cfg.heldout)
+        score(job, threads, cfg)
         keep(job.folder, job.record)
         print(
             f"    {m['train_seconds'] / 60:.1f} min, test MAE {m['test/mae_mm']:.4f} mm "

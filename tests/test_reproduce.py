@@ -378,7 +378,13 @@ def test_a_study_of_its_own_rows_trains_each_once_and_tables_them(tiny_dataset, 
         _reproduce_cfg(overrides, runs, out),
         {"tables": [], "classical": False, "heldout": 0, "rows": rows},
     )
+    # the rows the robustness pattern names are scored on shifted twins, and their records
+    # keep the scores
+    cfg.robustness = {"rows": ["l1-*"], "shifts": ["gamma:2"], "scenes": 2}
     reproduce(cfg)
+    rob = json.loads((out / "runs" / "l1-seed0" / "robustness.json").read_text())
+    assert list(rob) == ["nominal", "gamma:2"] and rob["gamma:2"]["test/mae_mm"] > 0
+    assert not (runs / "plain-seed0" / "robustness.json").exists()
     assert sorted(p.name for p in runs.iterdir() if not p.name.startswith(".")) == [
         "l1-seed0",
         "plain-seed0",
