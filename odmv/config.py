@@ -70,10 +70,15 @@ def view_list(views) -> ListConfig:
         ) from None
 
 
+#: settings whose null (off) state leaves a node's hash as it was before they existed
+NULL_OFF = ("randomize",)
+
+
 def settings_hash(node) -> str:
-    """Short stable hash of a config node (ignoring ``workers``), to name derived folders."""
+    """Short stable hash of a config node (ignoring ``workers``, and the settings of NULL_OFF
+    when null), to name derived folders."""
     d = OmegaConf.to_container(node, resolve=True) if not isinstance(node, dict) else node
-    d = {k: v for k, v in d.items() if k != "workers"}
+    d = {k: v for k, v in d.items() if k != "workers" and not (k in NULL_OFF and v is None)}
     return hashlib.sha1(json.dumps(d, sort_keys=True).encode()).hexdigest()[:8]
 
 
@@ -107,6 +112,18 @@ def on_gpu(accelerator) -> bool:
     return False
 
 
+def randomize_profile(name):
+    """A domain-randomization profile (conf/randomize/NAME.yaml) as {shift: [low, high]};
+    None for null."""
+    if name is None:
+        return None
+    path = Path(CONF_DIR, "randomize", f"{name}.yaml")
+    if not path.is_file():
+        known = sorted(p.stem for p in path.parent.glob("*.yaml"))
+        raise ValueError(f"data.randomize={name}: no such profile; choose from {', '.join(known)}")
+    return OmegaConf.load(path)
+
+
 def csv_list(values) -> str:
     """[0, 1] -> "0,1": a list as a Hydra sweep value (sweep configs' seeds)."""
     return ",".join(str(v) for v in values)
@@ -122,6 +139,7 @@ for _name, _fn in (
     ("odmv.n_views", n_views),
     ("odmv.hash", settings_hash),
     ("odmv.contenders", contenders),
+    ("odmv.randomize", randomize_profile),
 ):
     if not OmegaConf.has_resolver(_name):
         OmegaConf.register_new_resolver(_name, _fn)

@@ -216,3 +216,46 @@ def test_a_shifted_dataset_keeps_the_nominal_calibration_and_rerenders_exactly(t
         json.loads((s.out / "manifest.json").read_text())["rig"]
         == json.loads((nominal.out / "manifest.json").read_text())["rig"]
     )
+
+
+def test_domain_randomization_draws_each_training_scenes_shifts_and_keeps_the_others(tmp_path):
+    profile = {"gamma": [1.2, 2.0], "projector_rotation": [0.0, 0.1], "texture": [0.2, 0.5]}
+    kw = {"scenes": 10, "height_px": 32, "width_px": 32, "seed": 3}
+    randomized = SimSettings(out=tmp_path / "dr", randomize=profile, **kw)
+    nominal = SimSettings(out=tmp_path / "nominal", **kw)
+    for s in (randomized, nominal):
+        simulate(s, workers=1, progress=False)
+    m = load_manifest(randomized.out)
+    assert m.extra["simulation"]["randomize"] == profile and m.rig == RIG
+    key = fringe_name("right", 2, 0)
+    strengths = []
+    for scene in m.scenes:
+        stored = read_exr(m.scene_dir(scene["id"]) / FRINGE_DIR / key)[FRINGE_CHANNEL]
+        plain = read_exr(nominal.out / "scenes" / scene["id"] / FRINGE_DIR / key)[FRINGE_CHANNEL]
+        if scene["split"] != "train":  # validation and test stay the nominal twin
+            assert "shifts" not in scene and np.array_equal(stored, plain)
+            continue
+        drawn = {d["name"]: d["strength"] for d in scene["shifts"]}
+        assert drawn.keys() == profile.keys()
+        assert all(lo <= drawn[k] <= hi for k, (lo, hi) in profile.items())
+        strengths.append(drawn["gamma"])
+        assert not np.array_equal(stored, plain)
+        _, again = rerender(randomized.out, scene["id"])  # the record renders it again exactly
+        np.testing.assert_array_equal(stored, again.fringes[key])
+    assert len(set(strengths)) == len(strengths) >= 6  # each scene its own draw
+    with pytest.raises(ValueError, match="randomize.dead_view"):
+        SimSettings(out=tmp_path / "x", randomize={"dead_view": [0, 1]})
+    with pytest.raises(ShiftError, match="gamma"):
+        SimSettings(out=tmp_path / "x", randomize={"gamma": [0.0, 2.0]})
+
+
+def test_data_randomize_names_a_profile_and_renders_its_own_dataset():
+    from helpers import compose_config
+
+    nominal = compose_config("train", ["experiment=mini"])
+    randomized = compose_config("train", ["experiment=mini", "data.randomize=all"])
+    assert randomized.data.simulate.randomize.gamma == [1.0, 2.2]
+    assert nominal.data.root != randomized.data.root  # a dataset of its own
+    assert nominal.data.root.endswith("synthetic-200x64px-4609dd24")  # today's, unchanged
+    with pytest.raises(Exception, match="no such profile"):
+        assert compose_config("train", ["data.randomize=bogus"]).data.root

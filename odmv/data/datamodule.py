@@ -56,6 +56,8 @@ class FPPDataModule(L.LightningDataModule):
     ``augment``: beyond the paper, ``"rot90"`` turns each training sample by a random number of
     quarter turns, the rig's symmetry (:mod:`odmv.data.augment`; needs square images and a
     dataset of all four views, which the train split then loads). None: no augmentation.
+    ``randomize``: the name of the domain-randomization profile the synthetic dataset was asked
+    with (conf/randomize/); the profile itself reaches the simulator through ``simulate``.
     """
 
     def __init__(
@@ -82,6 +84,7 @@ class FPPDataModule(L.LightningDataModule):
         reference: bool | str = False,
         train_steps: str | list[int] | None = None,
         augment: str | None = None,
+        randomize: str | None = None,
         progress: bool = True,
     ):
         super().__init__()
@@ -105,6 +108,7 @@ class FPPDataModule(L.LightningDataModule):
         if augment not in AUGMENTS:
             raise DataError(f"data.augment: {augment!r} unknown; choose null or rot90")
         self.train_steps, self.augment = train_steps, augment
+        self.randomize = randomize
         self.progress = progress
         self.manifest: Manifest | None = None
         self.spec: SampleSpec | None = None

@@ -109,22 +109,16 @@ class Shift:
     def rig(self, rig: Rig) -> Rig:
         """The rig that renders the images (the manifest keeps ``rig``)."""
         x = self.value
-        if self.nominal or self.name not in (
-            "projector_rotation",
-            "projector_shift",
-            "camera_focal",
-        ):
+        if self.nominal or self.name not in GEOMETRIC:
             return rig
-        if self.name == "camera_focal":
+        if self.name == "camera_focal":  # (a moved-projector rig keeps its moves)
             focal = rig.camera.focal_mm * (1 + x / 100)
             return replace(rig, camera=replace(rig.camera, focal_length_mm=focal))
-        return MovedProjectorsRig(
-            rig.camera,
-            rig.projector,
-            rotation_deg=x if self.name == "projector_rotation" else 0.0,
-            shift_mm=x if self.name == "projector_shift" else 0.0,
-            seed=self.seed,
-        )
+        if not isinstance(rig, MovedProjectorsRig):
+            rig = MovedProjectorsRig(rig.camera, rig.projector, seed=self.seed)
+        if self.name == "projector_rotation":
+            return replace(rig, rotation_deg=x, seed=self.seed)
+        return replace(rig, shift_mm=x, seed=self.seed)
 
     def render(self, cfg: RenderConfig) -> RenderConfig:
         """The optics and sensor that render the images."""
@@ -159,6 +153,38 @@ class Shift:
 
 
 NOMINAL_SHIFT = Shift()
+
+
+@dataclass(frozen=True)
+class Applied:
+    """What a set of shifts does to a render: the rig and optics that render the images, the
+    surfaces' texture and gloss, and the dead projector (odmv.sim.render.render_scene)."""
+
+    rig: Rig
+    render: RenderConfig
+    texture: float = 0.0
+    gloss: float = 0.0
+    dead_view: str | None = None
+
+
+def apply(shifts, rig: Rig, cfg: RenderConfig) -> Applied:
+    """``shifts`` (one Shift or several, of distinct names) applied together to the nominal
+    ``rig`` and ``cfg``."""
+    shifts = [shifts] if isinstance(shifts, Shift) else list(shifts)
+    names = [s.name for s in shifts if s.name != "none"]
+    if len(set(names)) < len(names):
+        raise ShiftError(f"shifts {names}: each shift at most once")
+    out = Applied(rig, cfg)
+    for s in shifts:
+        out = replace(
+            out,
+            rig=s.rig(out.rig),
+            render=s.render(out.render),
+            texture=out.texture or s.texture_contrast,
+            gloss=out.gloss or s.gloss,
+            dead_view=out.dead_view or s.dead_view,
+        )
+    return out
 
 
 def parse_shift(text: str, seed: int = 0) -> Shift:

@@ -40,7 +40,7 @@ from odmv.io.manifest import (
 from odmv.rig import Rig, check_views, size_hw
 from odmv.sim.render import RenderConfig, Rendered, render_scene
 from odmv.sim.scenes import Scene, build_scene, choose_family, draw_spec, mesh_files_in
-from odmv.sim.shifts import NOMINAL_SHIFT, Shift
+from odmv.sim.shifts import NOMINAL, NOMINAL_SHIFT, Shift, apply
 
 PARTIAL_PREFIX = ".partial-"
 
@@ -68,6 +68,9 @@ class SimSettings:
     render: RenderConfig = field(default_factory=RenderConfig)
     rig: Rig = field(default_factory=Rig)  # the nominal rig: the manifest's calibration
     shift: Shift = NOMINAL_SHIFT  # what renders the images differs from it (odmv.sim.shifts)
+    # domain randomization: {shift name: [low, high]}; each training scene draws every listed
+    # shift's strength from its range (validation and test scenes stay as ``shift`` says)
+    randomize: dict | None = None
     compression: str = "zstd"
     fringe_dtype: str = "float32"
 
@@ -99,7 +102,30 @@ class SimSettings:
             kw["rig"] = Rig.from_dict(c["rig"])
         if c.get("shift"):
             kw["shift"] = Shift(**c["shift"])
+        if c.get("randomize"):
+            kw["randomize"] = {k: [float(lo), float(hi)] for k, (lo, hi) in c["randomize"].items()}
         return cls(**kw)
+
+    def __post_init__(self):
+        for name, bounds in (self.randomize or {}).items():
+            if name not in NOMINAL or name in ("none", "dead_view") or len(bounds) != 2:
+                raise SimulationError(
+                    f"randomize.{name}: name a shift with a numeric strength and give [low, high]"
+                )
+            for x in bounds:
+                Shift(name, x)  # each end a valid strength (one-line ShiftError otherwise)
+
+    def scene_shifts(self, index: int, split: str | None) -> list[Shift]:
+        """The shifts scene ``index`` renders under: ``shift``, and for a training scene of a
+        randomized dataset, every randomized shift at a strength drawn for that scene."""
+        if not self.randomize or split != "train":
+            return [self.shift]
+        rng = np.random.default_rng([self.seed, index, 2])
+        drawn = [
+            Shift(name, float(rng.uniform(lo, hi)), int(rng.integers(2**31)))
+            for name, (lo, hi) in sorted(self.randomize.items())
+        ]
+        return [self.shift, *drawn]
 
     def complete(self) -> bool:
         """Whether ``out`` already holds every scene of this dataset."""
@@ -121,6 +147,7 @@ class SimSettings:
             "fringe_dtype": self.fringe_dtype,
             # a nominal render keeps the key it had before shifts existed
             **({} if self.shift.nominal else {"shift": self.shift.to_dict()}),
+            **({"randomize": self.randomize} if self.randomize else {}),
         }
 
 
@@ -158,7 +185,9 @@ def _manifest_for(s: SimSettings) -> Manifest:
         family = choose_family(s.family, s.mix, _scene_rng(s.seed, i))
         if family == "freeform" and not files and s.mesh_dir:
             raise SimulationError(f"{s.mesh_dir}: no .stl/.obj/.ply files found")
-        scenes.append({"id": scene_id(i), "split": labels[i], "family": family})
+        scene = {"id": scene_id(i), "split": labels[i], "family": family}
+        drawn = [x.to_dict() for x in s.scene_shifts(i, labels[i])[1:]]
+        scenes.append(scene | ({"shifts": drawn} if drawn else {}))
     return Manifest(
         root=s.out,
         height_px=s.height_px,
@@ -187,6 +216,7 @@ def render_and_write(s: SimSettings, index: int, spec: dict | None = None) -> st
         spec = draw_scene_spec(s, index)
     scene = build_scene(spec)
     noise_seed = [s.seed, index, 1]
+    split = _split_labels(s.scenes, s.splits, s.seed)[index]
     r = _render(
         scene,
         s.rig,
@@ -195,7 +225,7 @@ def render_and_write(s: SimSettings, index: int, spec: dict | None = None) -> st
         s.fringe,
         s.views,
         s.render,
-        s.shift,
+        s.scene_shifts(index, split),
         np.random.default_rng(noise_seed),
         s.images,
     )
@@ -253,26 +283,29 @@ def render_config(m: Manifest) -> RenderConfig:
     return RenderConfig(**m.extra.get("simulation", {}).get("render", {}))
 
 
-def shift_of(m: Manifest) -> Shift:
-    """The shift a synthetic dataset was rendered under (its manifest's record)."""
-    return Shift(**m.extra.get("simulation", {}).get("shift", {}))
+def shifts_of(m: Manifest, sid: str) -> list[Shift]:
+    """The shifts a stored synthetic scene was rendered under (its manifest's records)."""
+    base = Shift(**m.extra.get("simulation", {}).get("shift", {}))
+    entry = next((s for s in m.scenes if s["id"] == sid), {})
+    return [base, *(Shift(**d) for d in entry.get("shifts", []))]
 
 
-def _render(scene, rig, height_px, width_px, fringe, views, cfg, shift: Shift, rng, images):
-    """render_scene through ``shift``: its rig and optics, its surfaces and dead projector."""
+def _render(scene, rig, height_px, width_px, fringe, views, cfg, shifts, rng, images):
+    """render_scene through ``shifts``: their rig and optics, surfaces and dead projector."""
+    a = apply(shifts, rig, cfg)
     return render_scene(
         scene,
-        shift.rig(rig),
+        a.rig,
         height_px,
         width_px,
         fringe,
         views,
-        shift.render(cfg),
+        a.render,
         rng,
         images,
-        texture=shift.texture_contrast,
-        gloss=shift.gloss,
-        dead_view=shift.dead_view,
+        texture=a.texture,
+        gloss=a.gloss,
+        dead_view=a.dead_view,
     )
 
 
@@ -290,7 +323,7 @@ def rerender(root: str | Path, sid: str) -> tuple[Scene, Rendered]:
         m.fringe,
         m.views,
         render_config(m),
-        shift_of(m),
+        shifts_of(m, sid),
         rng,
         m.images,
     )
