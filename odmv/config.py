@@ -91,9 +91,15 @@ def view_channels(reference) -> int:
     return reference_channels(reference)
 
 
-def in_channels(views, reference) -> int:
-    """Input channels of a 2D net that stacks every view's channels."""
-    return n_views(views) * view_channels(reference)
+def in_channels(views, reference, view_dropout=None) -> int:
+    """Input channels of a 2D net that stacks every view's channels (and, trained with
+    ``view_dropout``, each view's availability: odmv.data.views)."""
+    return n_views(views) * (view_channels(reference) + (view_dropout is not None))
+
+
+def availability(view_dropout):
+    """ODMV-Net's ``availability`` switch: True with ``view_dropout``, else None (off)."""
+    return True if view_dropout is not None else None
 
 
 def first_set(*values):
@@ -140,6 +146,7 @@ for _name, _fn in (
     ("odmv.hash", settings_hash),
     ("odmv.contenders", contenders),
     ("odmv.randomize", randomize_profile),
+    ("odmv.availability", availability),
 ):
     if not OmegaConf.has_resolver(_name):
         OmegaConf.register_new_resolver(_name, _fn)

@@ -46,8 +46,9 @@ class DepthInMM(torch.nn.Module):
 def input_shape(module: FPPModule) -> tuple[int, int, int]:
     """(channels, H, W) of the net's input, from the checkpoint's settings."""
     h, w = size_hw((module.hparams.data_cfg or {}).get("resolution", 480))
-    reference = (module.hparams.input_spec or {}).get("reference", False)
-    in_channels = len(module.hparams.views) * view_channels(reference)
+    spec = module.hparams.input_spec or {}
+    per_view = view_channels(spec.get("reference", False)) + bool(spec.get("availability"))
+    in_channels = len(module.hparams.views) * per_view
     return in_channels, h, w
 
 

@@ -14,6 +14,7 @@ import torch
 
 from odmv.data.normalize import Normalization
 from odmv.data.reference import network_input, reference_mode, reference_phase
+from odmv.data.views import with_availability
 from odmv.export import METADATA_KEY, input_shape
 from odmv.module import load_module
 from odmv.rig import Rig
@@ -40,6 +41,8 @@ class Predictor:
                 rig, self.views, *self.size, spec["period_px"], spec["step"], spec["n_steps"]
             )
             x = network_input(x, torch.from_numpy(ref), mode)
+        if spec.get("availability"):  # a net trained with view dropout: every view present
+            x = with_availability(x, torch.ones(len(self.views)))
         return x[None]
 
 

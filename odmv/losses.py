@@ -66,8 +66,15 @@ def composite_loss(out: dict, batch: dict, w: LossWeights) -> dict[str, torch.Te
     for k, (aux, lam) in enumerate(zip(out.get("aux", []), w.aux, strict=False), start=1):
         terms[f"aux{k}"] = depth_loss(aux, batch["depth"], w)["loss"]
         total = total + lam * terms[f"aux{k}"]
+    # a missing view (odmv.data.views) is neither reconstructed nor phase-supervised
+    available = batch.get("available")
     if "views" in out and w.view:
-        terms["view"] = F.mse_loss(out["views"], batch["fringes"])
+        if available is None:
+            terms["view"] = F.mse_loss(out["views"], batch["fringes"])
+        else:
+            keep = available[..., None, None].expand_as(batch["fringes"])
+            err = (out["views"] - batch["fringes"]) ** 2 * keep
+            terms["view"] = err.sum() / keep.sum().clamp_min(1)
         total = total + w.view * terms["view"]
     if "occlusion" in out and w.occlusion:
         occ = []
@@ -81,7 +88,8 @@ def composite_loss(out: dict, batch: dict, w: LossWeights) -> dict[str, torch.Te
             batch["phase_target"],
             batch["lit"],
         )  # B x 2S x H x W (sin, cos), B x S x H x W
-        mask = lit.repeat_interleave(2, dim=1)
+        mask = lit if available is None else lit * available[..., None, None]
+        mask = mask.repeat_interleave(2, dim=1)
         err = (out["phase"] - target) ** 2 * mask
         terms["phase"] = err.sum() / mask.sum().clamp_min(1)
         total = total + w.phase * terms["phase"]

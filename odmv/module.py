@@ -87,6 +87,7 @@ class FPPModule(L.LightningModule):
             spec = dm.spec  # what predict needs to rebuild the net's input from images
             self.hparams["input_spec"] = {
                 "reference": spec.reference,
+                "availability": dm.view_dropout is not None,  # odmv.data.views
                 "period_px": spec.period_px,
                 "step": spec.step,
                 "n_steps": spec.n_steps,

@@ -55,6 +55,8 @@ def turn_sample(sample: dict, have: tuple[str, ...], want: tuple[str, ...], k: i
             out[name] = torch.rot90(x, k, dims=(-2, -1))
     for name in _IMAGES:
         out[name] = torch.rot90(sample[name], k, dims=(-2, -1))
+    if "available" in sample:  # each view's availability (odmv.data.views) goes with its arrays
+        out["available"] = sample["available"][idx]
     return out
 
 

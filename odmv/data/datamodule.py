@@ -28,6 +28,7 @@ from odmv.data.dataset import (
     split_scenes,
 )
 from odmv.data.normalize import Normalization
+from odmv.data.views import ViewDropout
 from odmv.io.manifest import MANIFEST, Manifest, ManifestError, load_manifest
 from odmv.rig import VIEW_NAMES
 
@@ -56,6 +57,9 @@ class FPPDataModule(L.LightningDataModule):
     ``augment``: beyond the paper, ``"rot90"`` turns each training sample by a random number of
     quarter turns, the rig's symmetry (:mod:`odmv.data.augment`; needs square images and a
     dataset of all four views, which the train split then loads). None: no augmentation.
+    ``view_dropout``: beyond the paper, the probability with which each view of a training
+    sample is dropped (at least one kept); every sample's input then carries each view's
+    availability (:mod:`odmv.data.views`). None: every view always, and no availability input.
     ``randomize``: the name of the domain-randomization profile the synthetic dataset was asked
     with (conf/randomize/); the profile itself reaches the simulator through ``simulate``.
     """
@@ -85,6 +89,7 @@ class FPPDataModule(L.LightningDataModule):
         train_steps: str | list[int] | None = None,
         augment: str | None = None,
         randomize: str | None = None,
+        view_dropout: float | None = None,
         progress: bool = True,
     ):
         super().__init__()
@@ -109,6 +114,7 @@ class FPPDataModule(L.LightningDataModule):
             raise DataError(f"data.augment: {augment!r} unknown; choose null or rot90")
         self.train_steps, self.augment = train_steps, augment
         self.randomize = randomize
+        self.view_dropout = view_dropout
         self.progress = progress
         self.manifest: Manifest | None = None
         self.spec: SampleSpec | None = None
@@ -148,12 +154,19 @@ class FPPDataModule(L.LightningDataModule):
                 specs = [replace(spec, views=self._all_views()) for spec in specs]
             parts = [
                 FringeDataset(
-                    self.manifest, ids, spec, self.norm, self._checked_cache(name, ids, spec)
+                    self.manifest,
+                    ids,
+                    spec,
+                    self.norm,
+                    self._checked_cache(name, ids, spec),
+                    availability=self.view_dropout is not None,
                 )
                 for spec in specs
             ]
             if turned:
                 parts = [QuarterTurns(part, self.spec.views) for part in parts]
+            if name == "train" and self.view_dropout:
+                parts = [ViewDropout(part, self.view_dropout) for part in parts]
             self.datasets[name] = parts[0] if len(parts) == 1 else ConcatDataset(parts)
 
     def _read_manifest(self) -> None:

@@ -19,6 +19,7 @@ import torch.nn.functional as F
 from odmv.data.normalize import Normalization
 from odmv.data.reference import network_input, reference_mode, reference_phase
 from odmv.data.subsets import MASKS, footprint_from_depth, subset_masks
+from odmv.data.views import with_availability
 from odmv.io.exr import ExrError, read_exr
 from odmv.io.manifest import (
     DEPTH_CHANNEL,
@@ -269,9 +270,16 @@ class FringeDataset(torch.utils.data.Dataset):
     """
 
     def __init__(
-        self, m: Manifest, ids: list[str], spec: SampleSpec, norm: Normalization, cache=None
+        self,
+        m: Manifest,
+        ids: list[str],
+        spec: SampleSpec,
+        norm: Normalization,
+        cache=None,
+        availability: bool = False,
     ):
         self.manifest, self.ids, self.spec, self.norm, self.cache = m, list(ids), spec, norm, cache
+        self.availability = availability  # inputs carry each view's availability (odmv.data.views)
         self.families = {s["id"]: str(s.get("family", "")) for s in m.scenes}
         self.reference = (
             torch.from_numpy(
@@ -315,6 +323,10 @@ class FringeDataset(torch.utils.data.Dataset):
         }
         if self.reference is not None:
             sample["inputs"] = network_input(sample["fringes"], self.reference, self.spec.reference)
+        if self.availability:
+            sample["available"] = torch.ones(len(self.spec.views))
+            base = sample.get("inputs", sample["fringes"])
+            sample["inputs"] = with_availability(base, sample["available"])
         if self.spec.with_phase:
             sample["phase_target"] = torch.from_numpy(np.array(raw["phase_target"], np.float32))
         if self.spec.with_stacks:

@@ -288,12 +288,13 @@ class OcclusionAwareFusion(nn.Module):
     def logit_layers(self) -> list[nn.Module]:
         return [self.mlp[-1], self.spatial]
 
-    def forward(self, x, mask=None):
-        x, weights = self.attend(x, mask)
+    def forward(self, x, mask=None, available=None):
+        x, weights = self.attend(x, mask, available)
         return (x * weights).sum(2)
 
-    def attend(self, x, mask=None):
-        """The attended features and the blend's weights over views, B x 1 x S x h x w."""
+    def attend(self, x, mask=None, available=None):
+        """The attended features and the blend's weights over views, B x 1 x S x h x w;
+        ``available`` (B x S bool, or None: all): a missing view gets weight exactly 0."""
         if mask is not None:
             x = x * mask
         # channel-view attention: B x C x S weights
@@ -309,7 +310,26 @@ class OcclusionAwareFusion(nn.Module):
             logits = self.bound * torch.tanh(logits / self.bound)
         if mask is not None:
             logits = logits + torch.log(mask.clamp_min(1e-4))
+        if available is not None:
+            logits = logits.masked_fill(~available[:, None, :, None, None], float("-inf"))
         return x, torch.softmax(logits, dim=2)
+
+
+def split_availability(x: torch.Tensor, n_views: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """A net's input with each view's availability after its channels (odmv.data.views),
+    B x S * (C + 1) x H x W -> the inputs (B x S * C x H x W) and the availability (B x S bool,
+    from the flag channel's mean)."""
+    v = x.unflatten(1, (n_views, x.shape[1] // n_views))
+    return v[:, :, :-1].flatten(1, 2), v[:, :, -1].mean((-2, -1)) > 0.5
+
+
+def view_mean(x: torch.Tensor, available: torch.Tensor | None = None) -> torch.Tensor:
+    """The mean over the views (B x C x S x h x w -> B x C x h x w) of the available ones
+    (B x S bool; None: all)."""
+    if available is None:
+        return x.mean(2)
+    w = available.to(x)[:, None, :, None, None]
+    return (x * w).sum(2) / w.sum(2)
 
 
 GATE_INITS = (None, "neutral")

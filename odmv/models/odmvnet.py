@@ -51,7 +51,9 @@ from odmv.models.blocks import (
     set_memory_format,
     set_norm,
     set_view_padding,
+    split_availability,
     stage3d,
+    view_mean,
 )
 
 LEVELS = 4  # encoder stages; the bottleneck sits at 1 / 2**LEVELS
@@ -146,7 +148,10 @@ class ODMVNet(nn.Module):
     ``gate_init``: None (PyTorch's initialisation) or "neutral", every gate starting uniform
     (:func:`odmv.models.blocks.set_gate_init`). ``fusion_bound``: None (the paper) or the
     bound on the attention's share of the fusion's blend logits
-    (:class:`odmv.models.blocks.OcclusionAwareFusion`)."""
+    (:class:`odmv.models.blocks.OcclusionAwareFusion`). ``availability`` (beyond the paper;
+    None: off): the input carries each view's availability after its channels
+    (:mod:`odmv.data.views`); a missing view's input is zeroed and the fusion gives it no
+    weight, so its images cannot move the depth."""
 
     LOSS_TERMS = ("aux", "view", "occlusion")  # the full model; a Table I row may lack some
 
@@ -171,8 +176,10 @@ class ODMVNet(nn.Module):
         full_width: int | None = None,
         gate_init: str | None = None,
         fusion_bound: float | None = None,
+        availability: bool | None = None,
     ):
         super().__init__()
+        self.availability = bool(availability)
         if ablation not in ABLATION_ROWS:
             raise ValueError(f"ablation {ablation!r} unknown; choose from {list(ABLATION_ROWS)}")
         given = dict(
@@ -261,8 +268,14 @@ class ODMVNet(nn.Module):
         m = self.stride * 2**LEVELS
         if h % m or wd % m:
             raise ValueError(f"ODMVNet needs H and W divisible by {m}, got {h}x{wd}")
-        if sc % self.view_channels:
-            raise ValueError(f"ODMVNet expects {self.view_channels} channels per view, got {sc}")
+        per_view = self.view_channels + self.availability
+        if sc % per_view:
+            raise ValueError(f"ODMVNet expects {per_view} channels per view, got {sc}")
+        available = None
+        if self.availability:
+            x, available = split_availability(x, sc // per_view)
+            x = x * available.repeat_interleave(self.view_channels, 1)[..., None, None]
+            sc = x.shape[1]
         if self.flags["rve"]:
             f, full = self.stem(x)
         else:  # B x C x S x H x W volume of the views' channels
@@ -295,7 +308,10 @@ class ODMVNet(nn.Module):
             heads_in = [(f, mask), (stages[0], masks[0]), (stages[1], masks[1])]
         outs = []
         for k, (feat, mask) in enumerate(heads_in):
-            fused = self.fusion[k](feat, mask) if self.fusion is not None else feat.mean(2)
+            if self.fusion is not None:
+                fused = self.fusion[k](feat, mask, available)
+            else:
+                fused = view_mean(feat, available)
             outs.append(self.heads[k](fused))
         result = {"depth": outs[0], "aux": outs[1:]}
         if self.ssvr is not None:
