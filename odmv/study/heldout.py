@@ -48,7 +48,10 @@ def twin_dataset(
     sim = dict(m.get("simulation") or {})
     if not sim:
         raise HeldoutError(f"{source}: not rendered by odmv.simulate; it has no twin to draw")
-    sim.pop("shift", None)  # a twin of a shifted set is drawn nominal unless asked
+    # a twin is the nominal rig unless a shift is asked: neither the source's shift nor its
+    # randomized training scenes carry over (a twin has test scenes only)
+    sim.pop("shift", None)
+    sim.pop("randomize", None)
     settings = SimSettings.from_dict(
         {
             **sim,
