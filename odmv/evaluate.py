@@ -22,6 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 from odmv.cli import run_app, set_threads, task_overrides
 from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.data.dataset import DataError
+from odmv.data.views import MissingViews
 from odmv.io.atomic import write_json
 from odmv.io.manifest import MANIFEST
 from odmv.io.runfolder import METRICS, PREDICTIONS, SCENES_CSV
@@ -160,6 +161,25 @@ def data_settings(saved: dict, cfg: DictConfig, overrides: list[str]) -> dict:
     return read_only(data)
 
 
+def mark_missing(dm, module, missing: list[str], ckpt_path) -> list[str]:
+    """Make ``missing`` views missing in every test sample (a net trained with view dropout
+    only: any other would read them as dark images); returns the views used."""
+    views = list(module.hparams.views)
+    if not missing:
+        return views
+    unknown = [v for v in missing if v not in views]
+    if unknown or len(missing) >= len(views):
+        raise ValueError(f"missing={missing}: name some, not all, of the net's views {views}")
+    if not (module.hparams.input_spec or {}).get("availability"):
+        raise ValueError(
+            f"missing={missing}: {ckpt_path} was not trained with view_dropout, so it cannot be "
+            "told that a view is missing (it would read a dark image)"
+        )
+    keep = torch.tensor([v not in missing for v in views])
+    dm.datasets["test"] = MissingViews(dm.datasets["test"], keep)
+    return [v for v in views if v not in missing]
+
+
 def evaluate(cfg: DictConfig, overrides: list[str] | None = None) -> dict:
     """Test metrics and figures for ``cfg.ckpt_path``; returns the metrics dict.
     ``overrides``: the command line's (default: Hydra's), which pick the data settings
@@ -173,7 +193,11 @@ def evaluate(cfg: DictConfig, overrides: list[str] | None = None) -> dict:
     dm = hydra.utils.instantiate(data_cfg, _convert_="all")
     dm.prepare_data()
     dm.setup("test")  # the test split only; the constant needs just the training depth maps
-    print(f"evaluating {cfg.ckpt_path} on the test split of {dm.root}", flush=True)
+    used = mark_missing(dm, module, list(cfg.get("missing") or []), cfg.ckpt_path)
+    print(
+        f"evaluating {cfg.ckpt_path} on the test split of {dm.root} (views: {', '.join(used)})",
+        flush=True,
+    )
     trainer = L.Trainer(
         accelerator=cfg.accelerator,
         devices=1,

@@ -6,6 +6,7 @@ import torch
 from helpers import compose_config, tiny_overrides
 
 from odmv.data.views import ViewDropout, drop, with_availability
+from odmv.evaluate import evaluate
 from odmv.inference import load_predictor
 from odmv.losses import LossWeights, composite_loss
 from odmv.models import ODMVNet
@@ -118,5 +119,25 @@ def test_training_with_view_dropout(model, tiny_dataset, tmp_path):
     x = predictor.inputs(torch.rand(4, 32, 32).numpy(), Rig())
     assert x.shape == (1, 4 * 4, 32, 32) and torch.all(x[0, 3::4] == 1)
     assert predictor.run(x).shape == (1, 1, 32, 32)
+    if model == "odmvnet":  # the test split with a projector missing
+        ckpt = metrics["best_checkpoint"]
+        run = [f"ckpt_path={ckpt}", "accelerator=cpu", "figures=0", "progress=false"]
+        full = evaluate(compose_config("evaluate", [*run, f"paths.output_dir={tmp_path}/e1"]))
+        down = evaluate(
+            compose_config("evaluate", [*run, f"paths.output_dir={tmp_path}/e2", "missing=[down]"])
+        )
+        assert full["test/mae_mm"] == pytest.approx(metrics["test/mae_mm"], rel=1e-5)
+        assert down["test/mae_mm"] > 0 and down["test/mae_mm"] != full["test/mae_mm"]
     off = compose_config("train", [o for o in overrides if not o.startswith("view_dropout")])
     assert off.data.view_dropout is None and off.model.net.get("availability") is None
+
+
+def test_only_a_net_trained_with_view_dropout_is_told_a_view_is_missing(trained, tmp_path):
+    run, metrics = trained
+    cfg = [f"ckpt_path={metrics['best_checkpoint']}", "accelerator=cpu", "figures=0",
+           f"paths.output_dir={tmp_path}"]  # fmt: skip
+    with pytest.raises(ValueError, match="not trained with view_dropout") as e:
+        evaluate(compose_config("evaluate", [*cfg, "missing=[down]"]), [])
+    assert "\n" not in str(e.value)
+    with pytest.raises(ValueError, match="some, not all"):
+        evaluate(compose_config("evaluate", [*cfg, "missing=[sideways]"]), [])

@@ -34,6 +34,20 @@ def drop(sample: dict, keep: torch.Tensor) -> dict:
     return out
 
 
+class MissingViews(torch.utils.data.Dataset):
+    """Each item of ``base`` with the views where ``keep`` is False missing (a capture that
+    lacks them, for a net trained with view dropout)."""
+
+    def __init__(self, base, keep: torch.Tensor):
+        self.base, self.keep = base, keep
+
+    def __len__(self) -> int:
+        return len(self.base)
+
+    def __getitem__(self, i: int) -> dict:
+        return drop(self.base[i], self.keep)
+
+
 class ViewDropout(torch.utils.data.Dataset):
     """Each item of ``base`` with each view dropped with probability ``p``, at least one kept
     (torch's generator: a seeded run drops the same views)."""
