@@ -31,8 +31,10 @@ class Predictor:
     input_spec: dict
     run: Callable[[torch.Tensor], np.ndarray]
 
-    def inputs(self, fringes: np.ndarray, rig: Rig) -> torch.Tensor:
-        """The net's input (1 x C x H x W) from linear-intensity images (S x H x W)."""
+    def inputs(self, fringes: np.ndarray, rig: Rig, available=None) -> torch.Tensor:
+        """The net's input (1 x C x H x W) from linear-intensity images (S x H x W);
+        ``available`` (S, 0/1; None: all) marks missing views for a net trained with view
+        dropout."""
         x = self.norm.fringes(torch.from_numpy(np.ascontiguousarray(fringes, np.float32)))
         spec = self.input_spec
         mode = reference_mode(spec.get("reference"))
@@ -41,8 +43,9 @@ class Predictor:
                 rig, self.views, *self.size, spec["period_px"], spec["step"], spec["n_steps"]
             )
             x = network_input(x, torch.from_numpy(ref), mode)
-        if spec.get("availability"):  # a net trained with view dropout: every view present
-            x = with_availability(x, torch.ones(len(self.views)))
+        if spec.get("availability"):  # a net trained with view dropout
+            flags = torch.ones(len(self.views)) if available is None else torch.as_tensor(available)
+            x = with_availability(x, flags.float())
         return x[None]
 
 

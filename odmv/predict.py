@@ -90,7 +90,7 @@ def _as_scene(path: Path, views: list[str]) -> Scene | None:
     dataset = path.parent.parent
     if path.parent.name == "scenes" and (dataset / MANIFEST).is_file() and path.is_dir():
         return Scene(path, load_manifest(dataset))
-    names = [views[0], fringe_name(views[0], 0, 0).removesuffix(".exr")]
+    names = [n for v in views for n in (v, fringe_name(v, 0, 0).removesuffix(".exr"))]
     if path.is_dir() and any(find_view_image(path, n) for n in names):
         return Scene(path)
     return None
@@ -132,8 +132,42 @@ class ImageReader:
         return stack
 
 
-def network_images(scene: Scene, predictor, reader: ImageReader, rig: Rig) -> np.ndarray:
-    """S x H x W linear-intensity images of the predictor's views at its input size."""
+def present_views(scene: Scene, predictor, named: list[str] | None) -> list[str]:
+    """The predictor's views this capture has: those ``named`` (``views=``), else those with an
+    image file (a dataset scene has all). A net trained with view dropout takes any non-empty
+    subset; any other net needs every view it was trained on."""
+    views = list(predictor.views)
+    if named:
+        have = [v for v in views if v in named]
+        if len(have) < len(named):
+            raise DataError(f"views={named}: the net knows only the views {views}")
+    elif scene.manifest is None:
+        have = [v for v in views if find_view_image(scene.folder, v)]
+    else:
+        have = views
+    if have == views:
+        return have
+    if not predictor.input_spec.get("availability"):
+        lost = [v for v in views if v not in have]
+        raise DataError(
+            f"{scene.folder}: no image for view(s) {', '.join(lost)}; this net needs all of "
+            f"{', '.join(views)} (one trained with view_dropout takes any of them)"
+        )
+    if not have:
+        raise DataError(f"{scene.folder}: none of the net's views {views}")
+    return have
+
+
+def network_images(scene: Scene, predictor, reader: ImageReader, rig: Rig, have=None):
+    """S x H x W linear-intensity images of the predictor's views at its input size (a view
+    not in ``have``: zeros, for the net to be told it is missing)."""
+    have = list(predictor.views) if have is None else list(have)
+    if scene.manifest is None and have != list(predictor.views):
+        present = reader.read(scene.folder, have, predictor.size)
+        images = np.zeros((len(predictor.views), *present.shape[1:]), np.float32)
+        for k, v in enumerate(have):
+            images[predictor.views.index(v)] = present[k]
+        return images
     if scene.manifest is not None:
         m = scene.manifest
         spec = SampleSpec(
@@ -142,7 +176,9 @@ def network_images(scene: Scene, predictor, reader: ImageReader, rig: Rig) -> np
             m.fringe.resolve_frequency(m.fringe.train_frequency),
             m.fringe.train_step,
         )
-        return load_scene(m, scene.name, spec)["fringes"]
+        images = np.array(load_scene(m, scene.name, spec)["fringes"], np.float32)
+        images[[v not in have for v in predictor.views]] = 0  # views= left them out
+        return images
     return reader.read(scene.folder, predictor.views, predictor.size)
 
 
@@ -218,8 +254,13 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
         for scene in scenes:
             rig = scene.manifest.rig if scene.manifest else (default_rig or Rig())
             if predictor is not None:
-                images = network_images(scene, predictor, reader, rig)
-                depth = predictor.run(predictor.inputs(images, rig))[0, 0].astype(np.float32)
+                have = present_views(scene, predictor, list(cfg.get("views") or []))
+                if have != list(predictor.views):
+                    print(f"{scene.name}: views {', '.join(have)} (the others missing)", flush=True)
+                images = network_images(scene, predictor, reader, rig, have)
+                available = np.array([v in have for v in predictor.views], np.float32)
+                x = predictor.inputs(images, rig, available)
+                depth = predictor.run(x)[0, 0].astype(np.float32)
                 period = predictor.input_spec.get("period_px")
             else:
                 depth, images, period = classical_depth(scene, reader, rig, cfg.manifest)

@@ -1,16 +1,22 @@
 """Missing views (odmv.data.views): a net trained with view dropout takes each view's
 availability, and a missing view's images cannot move ODMV-Net's depth."""
 
+import shutil
+
+import numpy as np
 import pytest
 import torch
 from helpers import compose_config, tiny_overrides
 
+from odmv.data.dataset import DataError
 from odmv.data.views import ViewDropout, drop, with_availability
 from odmv.evaluate import evaluate
 from odmv.inference import load_predictor
+from odmv.io.exr import read_channel
 from odmv.losses import LossWeights, composite_loss
 from odmv.models import ODMVNet
 from odmv.models.blocks import split_availability
+from odmv.predict import predict
 from odmv.rig import Rig
 from odmv.train import train
 
@@ -128,11 +134,32 @@ def test_training_with_view_dropout(model, tiny_dataset, tmp_path):
         )
         assert full["test/mae_mm"] == pytest.approx(metrics["test/mae_mm"], rel=1e-5)
         assert down["test/mae_mm"] > 0 and down["test/mae_mm"] != full["test/mae_mm"]
+        # a capture without its down projector's image, and the same scene with views= naming
+        # the three it has: the same depth, the missing view given as missing
+        scene = tiny_dataset / "scenes" / "000004"
+        capture = tmp_path / "capture"
+        capture.mkdir()
+        for v in ("right", "left", "up"):
+            shutil.copy(scene / "fringe" / f"{v}_f2_s00.exr", capture / f"{v}.exr")
+        three = predict(_predict_cfg(ckpt, capture, tmp_path / "p1"))
+        named = predict(_predict_cfg(ckpt, scene, tmp_path / "p2", "views=[right,left,up]"))
+        assert np.array_equal(
+            read_channel(three[0]["depth"], "Z"), read_channel(named[0]["depth"], "Z")
+        )
     off = compose_config("train", [o for o in overrides if not o.startswith("view_dropout")])
     assert off.data.view_dropout is None and off.model.net.get("availability") is None
 
 
-def test_only_a_net_trained_with_view_dropout_is_told_a_view_is_missing(trained, tmp_path):
+def _predict_cfg(ckpt, folder, out, *extra):
+    return compose_config(
+        "predict",
+        [f"ckpt_path={ckpt}", f"input={folder}", f"out={out}", f"paths.output_dir={out}", *extra],
+    )
+
+
+def test_only_a_net_trained_with_view_dropout_is_told_a_view_is_missing(
+    trained, tiny_dataset, tmp_path
+):
     run, metrics = trained
     cfg = [f"ckpt_path={metrics['best_checkpoint']}", "accelerator=cpu", "figures=0",
            f"paths.output_dir={tmp_path}"]  # fmt: skip
@@ -141,3 +168,11 @@ def test_only_a_net_trained_with_view_dropout_is_told_a_view_is_missing(trained,
     assert "\n" not in str(e.value)
     with pytest.raises(ValueError, match="some, not all"):
         evaluate(compose_config("evaluate", [*cfg, "missing=[sideways]"]), [])
+    capture = tmp_path / "capture"
+    capture.mkdir()
+    for v in ("right", "left", "up"):
+        shutil.copy(tiny_dataset / "scenes" / "000004" / "fringe" / f"{v}_f2_s00.exr",
+                    capture / f"{v}.exr")  # fmt: skip
+    with pytest.raises(DataError, match="no image for view.*down.*view_dropout") as e:
+        predict(_predict_cfg(metrics["best_checkpoint"], capture, tmp_path / "p"))
+    assert "\n" not in str(e.value)
