@@ -258,19 +258,7 @@ def test_a_record_without_its_config_is_judged_by_its_recorded_key(tmp_path):
 
 @pytest.mark.slow
 def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, tmp_path, capsys):
-    overrides = [
-        "data=exr",
-        f"root={tiny_dataset}",
-        "data.resolution=32",
-        "data.batch_size=2",
-        f"data.cache_dir={tmp_path}/cache",
-        "widths.odmvnet=4",
-        "model.net.blocks=1",
-        "trainer.max_epochs=1",
-        "trainer.limit_train_batches=2",
-        "trainer.enable_model_summary=false",
-        "log_images=0",
-    ]
+    overrides = _row_overrides(tiny_dataset, tmp_path, "widths.odmvnet=4", "model.net.blocks=1")
     runs, out = tmp_path / "runs", tmp_path / "report"
     cfg = _reproduce_cfg(overrides, runs, out)
     reproduce(cfg)
@@ -357,17 +345,7 @@ def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, 
 
 
 def test_a_study_of_its_own_rows_trains_each_once_and_tables_them(tiny_dataset, tmp_path, capsys):
-    overrides = [
-        "data=exr",
-        f"root={tiny_dataset}",
-        "data.resolution=32",
-        "data.batch_size=2",
-        f"data.cache_dir={tmp_path}/cache",
-        "trainer.max_epochs=1",
-        "trainer.limit_train_batches=2",
-        "trainer.enable_model_summary=false",
-        "log_images=0",
-    ]
+    overrides = _row_overrides(tiny_dataset, tmp_path)
     runs, out = tmp_path / "runs", tmp_path / "study"
     rows = {
         "plain": ["model=unet", "widths.unet=4"],
@@ -399,6 +377,22 @@ def test_a_study_of_its_own_rows_trains_each_once_and_tables_them(tiny_dataset, 
     assert "(2 done)" in capsys.readouterr().out
     with pytest.raises(ReproduceError, match="rows.bad"):
         plan("mini", [], [0], overrides, runs, rows={"bad": ["model=nonet"]})
+
+
+def _row_overrides(dataset, tmp_path, *extra):
+    """Train overrides of every row of a seconds-long reproduction on ``dataset`` at 32 px."""
+    return [
+        "data=exr",
+        f"root={dataset}",
+        "data.resolution=32",
+        "data.batch_size=2",
+        f"data.cache_dir={tmp_path}/cache",
+        *extra,
+        "trainer.max_epochs=1",
+        "trainer.limit_train_batches=2",
+        "trainer.enable_model_summary=false",
+        "log_images=0",
+    ]
 
 
 def _reproduce_cfg(overrides, runs, out):
