@@ -78,12 +78,13 @@ def twin_dataset(
 def heldout_dataset(source: Path, scenes: int = SCENES) -> Path:
     """Render (or finish) the held-out twin of dataset ``source`` (``scenes`` scenes); returns
     its folder."""
-    seed = _seed(source) + 1
+    seed = source_seed(source) + 1
     out = source.parent / f"heldout{scenes}-{source.name}-seed{seed}"
     return twin_dataset(source, out, scenes, seed, "training")
 
 
-def _seed(source: Path) -> int:
+def source_seed(source: Path) -> int:
+    """The scene seed dataset ``source`` was rendered from (its manifest's record)."""
     try:
         return int(json.loads((source / MANIFEST).read_text())["simulation"].get("seed", 0))
     except (OSError, json.JSONDecodeError, KeyError) as e:

@@ -26,9 +26,8 @@ import matplotlib
 import numpy as np
 
 from odmv.io.atomic import write_atomic, write_csv, write_json, write_text
-from odmv.io.manifest import MANIFEST
 from odmv.sim.shifts import NOMINAL_SHIFT, Shift, parse_shift
-from odmv.study.heldout import HeldoutError, evaluate_on, twin_dataset
+from odmv.study.heldout import evaluate_on, source_seed, twin_dataset
 from odmv.study.records import METRICS, ROBUSTNESS
 
 matplotlib.use("Agg")
@@ -66,17 +65,10 @@ SHIFTS = (
 def shifted_set(source: Path, shift: Shift, scenes: int = SCENES) -> Path:
     """The shifted twin of dataset ``source`` (rendered on first use; full sequences, so the
     classical method can run on it too)."""
-    seed = _source_seed(source) + SEED_OFFSET
+    seed = source_seed(source) + SEED_OFFSET
     name = shift.label().replace(":", "_")
     out = source.parent / f"robust{scenes}-{source.name}-seed{seed}-{name}"
     return twin_dataset(source, out, scenes, seed, "full", shift)
-
-
-def _source_seed(source: Path) -> int:
-    try:
-        return int(json.loads((source / MANIFEST).read_text())["simulation"]["seed"])
-    except (OSError, json.JSONDecodeError, KeyError) as e:
-        raise HeldoutError(f"{source}: no simulation record to draw a twin from ({e})") from None
 
 
 def score_run(
