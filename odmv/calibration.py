@@ -25,13 +25,13 @@ conventions as the simulator's rig.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import yaml
 
-from odmv.rig import VIEW_NAMES, Camera, Projector
+from odmv.rig import VIEW_NAMES, Camera, Projector, rig_geometry
 
 _WORLD_TO_CAMERA = np.diag([1.0, -1.0, -1.0])  # the camera looks down -z, rows run along -y
 
@@ -60,13 +60,16 @@ def _opencv_to_corner_origin(K: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class CalibratedRig:
-    """Duck-types :class:`odmv.rig.Rig` where prediction needs it: ``camera_at``, ``projectors``."""
+    """Duck-types :class:`odmv.rig.Rig` where prediction and datasets need it: ``camera_at``,
+    ``projectors``, ``geometry``; ``source`` is the file's content (a dataset's manifest keeps
+    it)."""
 
     K: np.ndarray  # camera intrinsics at ``size`` (corner origin)
     dist: np.ndarray
     size: tuple[int, int]  # (width, height) K refers to
     plane_mm: float
     devices: dict[str, Projector]
+    source: dict = field(default_factory=dict, compare=False)
 
     def camera_at(self, width_px: int, height_px: int | None = None) -> Camera:
         height_px = width_px if height_px is None else height_px
@@ -77,6 +80,9 @@ class CalibratedRig:
 
     def projectors(self) -> dict[str, Projector]:
         return dict(self.devices)
+
+    def geometry(self, width_px: int, height_px: int | None = None) -> dict:
+        return rig_geometry(self, width_px, height_px)
 
 
 def load_calibration(path: str | Path) -> CalibratedRig:
@@ -90,6 +96,11 @@ def load_calibration(path: str | Path) -> CalibratedRig:
         raise CalibrationError(
             f"{path}: not readable YAML or JSON ({str(e).splitlines()[0]})"
         ) from None
+    return parse_calibration(data, path)
+
+
+def parse_calibration(data, path) -> CalibratedRig:
+    """A calibration's content (the schema above) -> the rig; ``path`` names it in errors."""
     if not isinstance(data, dict) or not {"camera", "projectors", "reference_plane_mm"} <= set(
         data
     ):
@@ -121,4 +132,5 @@ def load_calibration(path: str | Path) -> CalibratedRig:
         devices[name] = Projector(name, K_p, R, R_cp @ t_wc + t_cp, w, h, axis)
     if not devices:
         raise CalibrationError(f"{path}: no projectors")
-    return CalibratedRig(K, dist[:4], size, plane, devices)
+    source = json.loads(json.dumps(data))  # plain JSON types, as a manifest stores it
+    return CalibratedRig(K, dist[:4], size, plane, devices, source)

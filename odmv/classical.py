@@ -25,6 +25,7 @@ from odmv.io.runfolder import METRICS
 from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_suffix
 from odmv.module import subset_masks, write_test_outputs
 from odmv.provenance import provenance
+from odmv.sequences import PspOptions
 
 #: Settings of the classical pipeline (documented in docs/reproduce.md).
 MIN_PERIOD_CAMERA_PX = 3.0  # finer sequences alias in the camera and are left out
@@ -33,20 +34,38 @@ TOLERANCE_MM = 0.1  # views further than this from the per-pixel median do not c
 EDGE_MM = 0.3  # mixed-pixel rejection against the 3 x 3 median
 
 
-def reconstruct_scene(stack: np.ndarray, periods: list[float], camera, projectors) -> np.ndarray:
-    """Full sequences (V, F, N, H, W) of the projectors ``projectors`` (a list) -> depth (mm,
-    NaN where rejected), using the sequences whose period the camera resolves."""
-    used = [
-        i
-        for i, p in enumerate(periods)
-        if period_in_camera_px(p, camera, projectors[0]) >= MIN_PERIOD_CAMERA_PX
-    ]
-    if len(used) < 1 or max(periods[i] for i in used) < max(periods):
-        raise DataError(f"classical: the coarsest period must be resolved (periods {periods})")
+def twin_options(m) -> PspOptions:
+    """The decoding options of a dataset's sequences (the twin's conventions)."""
+    width = next(iter(m.rig.projectors().values())).width_px
+    periods = tuple(width / p for p in sorted(m.fringe.periods_px, reverse=True))
+    return PspOptions(periods=periods, steps=m.fringe.steps, min_modulation=MIN_MODULATION)
+
+
+def reconstruct_scene(stack: np.ndarray, camera, projectors, options: PspOptions) -> np.ndarray:
+    """Full sequences (V, F, N, H, W; frequencies in the order of ``options.frequencies``) of
+    the projectors ``projectors`` (a list) -> depth (mm, NaN where rejected), using the
+    sequences whose period the camera resolves."""
     depths, mods = [], []
     for view_stack, proj in zip(stack, projectors, strict=True):
+        axis_px = proj.width_px if proj.phase_axis == "u" else proj.height_px
+        periods_px = [axis_px / p for p in options.frequencies]
+        used = [
+            i
+            for i, p in enumerate(periods_px)
+            if period_in_camera_px(p, camera, proj) >= MIN_PERIOD_CAMERA_PX
+        ]
+        if not used or max(periods_px[i] for i in used) < max(periods_px):
+            raise DataError(
+                f"classical: the camera does not resolve the coarsest fringes "
+                f"(periods {list(options.frequencies)} across the projector)"
+            )
         d, m = reconstruct_view(
-            view_stack[used], [periods[i] for i in used], camera, proj, MIN_MODULATION
+            view_stack[used],
+            [periods_px[i] for i in used],
+            camera,
+            proj,
+            options.min_modulation,
+            **options.conventions(),
         )
         depths.append(d)
         mods.append(m)
@@ -70,14 +89,16 @@ def classical_row(
     cam = m.rig.camera_at(w, h)
     projectors = [m.rig.projectors()[v] for v in m.views]
     n_f, n_s = len(m.fringe.periods_px), m.fringe.steps
+    options = twin_options(m)
+    coarse_first = np.argsort(m.fringe.periods_px)[::-1]
     families = {s["id"]: str(s.get("family", "")) for s in m.scenes}
     metrics = {k: DepthErrors() for k in SUBSETS}
     covered = {k: [0.0, 0.0] for k in SUBSETS}
     rows, preds = [], {"scene_id": [], "pred_mm": [], "depth_mm": []}
     for sid in ids:
         raw = load_scene(m, sid, spec)
-        stack = raw["fringe_stack"].reshape(len(m.views), n_f, n_s, h, w)
-        depth = reconstruct_scene(stack, list(m.fringe.periods_px), cam, projectors)
+        stack = raw["fringe_stack"].reshape(len(m.views), n_f, n_s, h, w)[:, coarse_first]
+        depth = reconstruct_scene(stack, cam, projectors, options)
         gt = torch.from_numpy(raw["depth_mm"][None].astype(np.float32))
         pred = torch.from_numpy(np.nan_to_num(depth, nan=0.0)[None, None].astype(np.float32))
         ok = torch.from_numpy(np.isfinite(depth)[None, None]).float()

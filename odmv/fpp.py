@@ -3,11 +3,14 @@
 The reference that learned methods are measured against, and the check that the digital twin's
 images and calibration agree: rendered fringes -> phase -> projector column -> depth in mm.
 Conventions follow the renderer: image n of an N-step sequence is A + B cos(phi + 2 pi n / N)
-with phi = 2 pi u / P, u the projector column (px) and P the period (px).
+with phi = 2 pi u / P, u the projector coordinate along its phase axis (px) and P the period
+(px). Real sequences may shift the other way or start elsewhere (``shift_sign``,
+``phase_origin_rad``).
 """
 
 from __future__ import annotations
 
+import heapq
 import warnings
 
 import numpy as np
@@ -15,13 +18,16 @@ import numpy as np
 from odmv.rig import Camera, Projector
 
 
-def wrapped_phase(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def wrapped_phase(
+    images: np.ndarray, shift_sign: int = 1, phase_origin_rad: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """N-step phase shifting: images (N, H, W) -> (phase in [0, 2 pi), modulation B).
 
-    Least-squares phase for shifts 2 pi n / N; the modulation tells how reliable it is.
+    Least-squares phase for image n = A + B cos(phi + shift_sign 2 pi n / N + phase_origin_rad);
+    the modulation tells how reliable it is.
     """
     n = images.shape[0]
-    delta = 2 * np.pi * np.arange(n) / n
+    delta = shift_sign * 2 * np.pi * np.arange(n) / n + phase_origin_rad
     s = np.tensordot(np.sin(delta), images, 1)
     c = np.tensordot(np.cos(delta), images, 1)
     phase = np.mod(np.arctan2(-s, c), 2 * np.pi)
@@ -55,16 +61,85 @@ def unwrap_checked(
     return u, agree
 
 
+def unwrap_spatial(phase: np.ndarray, quality: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """Quality-guided spatial unwrapping of a wrapped phase (H, W) over the pixels ``ok``.
+
+    Each 4-connected region of ``ok`` grows from its best pixel (highest ``quality``, e.g. the
+    modulation), always to the best neighbour of what is unwrapped, adding to each pixel the
+    multiple of 2 pi that brings it nearest its unwrapped neighbour; the seed keeps its wrapped
+    value. So the result is relative: each region is off the absolute phase by an unknown
+    multiple of 2 pi, and a step of more than pi between neighbours unwraps wrongly. NaN
+    outside ``ok``."""
+    h, w = phase.shape
+    out = np.full((h, w), np.nan)
+    done = ~ok.copy()
+    q = np.where(ok, quality, -np.inf).ravel()
+    for seed in np.argsort(-q):
+        if done.flat[seed]:
+            continue
+        if not np.isfinite(q[seed]):
+            break
+        out.flat[seed] = phase.flat[seed]
+        done.flat[seed] = True
+        heap = [(-q[seed], int(seed))]
+        while heap:
+            _, i = heapq.heappop(heap)
+            r, c = divmod(i, w)
+            for rr, cc in ((r - 1, c), (r + 1, c), (r, c - 1), (r, c + 1)):
+                if 0 <= rr < h and 0 <= cc < w and not done[rr, cc]:
+                    j = rr * w + cc
+                    step = phase.flat[j] - out.flat[i]
+                    out.flat[j] = phase.flat[j] - 2 * np.pi * np.round(step / (2 * np.pi))
+                    done.flat[j] = True
+                    heapq.heappush(heap, (-q[j], j))
+    return out
+
+
+def decode_phase(
+    stack: np.ndarray,
+    periods: list[float],
+    min_modulation: float,
+    shift_sign: int = 1,
+    phase_origin_rad: float = 0.0,
+    unwrap: str = "temporal",
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One projector's sequences (F, N, H, W; linear intensity) -> the unwrapped coordinate
+    along its phase axis (in the unit of ``periods``: give projector px and it is px), the
+    modulation of the finest sequence, the pixels kept, and the pixels where every sequence is
+    modulated (over which the kept share tells whether the conventions are right).
+
+    Kept: modulation at least ``min_modulation`` in every sequence (elsewhere unlit, shadowed,
+    or a mixed pixel whose surfaces cancel) and consecutive unwrapping levels that agree within
+    a quarter of the finer period (elsewhere a fringe order is wrong: a mixed pixel at an edge,
+    or, on most pixels, a sequence read with the wrong conventions). ``unwrap="spatial"``
+    unwraps the coarsest sequence spatially (:func:`unwrap_spatial`), so the coordinate is
+    relative: off by an unknown whole number of coarsest periods per connected region."""
+    phases, mods = zip(
+        *(wrapped_phase(s, shift_sign, phase_origin_rad) for s in stack), strict=True
+    )
+    modulated = np.logical_and.reduce([m >= min_modulation for m in mods])
+    phases = list(phases)
+    coarsest = int(np.argmax(periods))
+    if unwrap == "spatial":
+        phases[coarsest] = unwrap_spatial(phases[coarsest], mods[coarsest], modulated)
+    elif unwrap != "temporal":
+        raise ValueError(f"unwrap: {unwrap!r} unknown; choose temporal or spatial")
+    u, ok = unwrap_checked(phases, periods)
+    return u, mods[int(np.argmin(periods))], ok & modulated & np.isfinite(u), modulated
+
+
 def triangulate_depth(u_px: np.ndarray, camera: Camera, projector: Projector) -> np.ndarray:
-    """Depth (camera-axis z, mm) of each camera pixel from its projector column ``u_px`` (H, W).
+    """Depth (camera-axis z, mm) of each camera pixel from its projector coordinate ``u_px``
+    (H, W) along the projector's phase axis (its column u, or its row v).
 
     Intersects the pixel-centre ray (lens distortion inverted) with the projector plane of
-    constant column u: (P_row0 - u P_row2) . [X, 1] = 0.
+    constant coordinate u: (P_axis - u P_row2) . [X, 1] = 0.
     """
     origin, d = camera.centre_rays()
     P = projector.P
-    a = P[0, :3] - u_px[..., None] * P[2, :3]
-    b = P[0, 3] - u_px * P[2, 3]
+    row = 0 if projector.phase_axis == "u" else 1
+    a = P[row, :3] - u_px[..., None] * P[2, :3]
+    b = P[row, 3] - u_px * P[2, 3]
     t = -(a @ origin + b) / (a * d).sum(-1)
     return camera.depth(origin + t[..., None] * d)
 
@@ -73,7 +148,8 @@ def period_in_camera_px(period_px: float, camera: Camera, projector: Projector) 
     """A fringe period (projector px) as the camera sees it on the reference plane (camera px),
     at the projector's principal point: tells which sequences the camera resolves."""
     cx, cy = projector.K[0, 2], projector.K[1, 2]
-    origin, d = projector.rays(np.array([[cx, cy], [cx + period_px, cy]]))
+    step = [period_px, 0.0] if projector.phase_axis == "u" else [0.0, period_px]
+    origin, d = projector.rays(np.array([[cx, cy], [cx + step[0], cy + step[1]]]))
     pts = origin + (-origin[2] / d[:, 2])[:, None] * d
     uv = camera.project(pts)
     return float(np.linalg.norm(uv[1] - uv[0]))
@@ -85,20 +161,20 @@ def reconstruct_view(
     camera: Camera,
     projector: Projector,
     min_modulation: float,
+    **conventions,
 ) -> tuple[np.ndarray, np.ndarray]:
     """One projector's sequences (F, N, H, W; linear intensity) -> depth (mm, NaN where
-    rejected) and the modulation of the finest sequence.
+    rejected) and the modulation of the finest sequence. ``conventions``: ``shift_sign``,
+    ``phase_origin_rad``, ``unwrap`` of :func:`decode_phase`.
 
     Rejected: modulation below ``min_modulation`` in any sequence (unlit, shadowed, or a mixed
     pixel whose surfaces cancel), and pixels where consecutive unwrapping levels disagree by more
     than a quarter of the finer period (a wrong fringe order, typical of mixed pixels at edges).
     """
-    phases, mods = zip(*(wrapped_phase(s) for s in stack), strict=True)
-    u, ok = unwrap_checked(list(phases), periods_px)
-    ok &= np.logical_and.reduce([m >= min_modulation for m in mods])
+    u, modulation, ok, _ = decode_phase(stack, periods_px, min_modulation, **conventions)
     depth = triangulate_depth(u, camera, projector)
     ok &= np.isfinite(depth)
-    return np.where(ok, depth, np.nan), mods[int(np.argmin(periods_px))]
+    return np.where(ok, depth, np.nan), modulation
 
 
 def _nanmedian(a: np.ndarray) -> np.ndarray:

@@ -91,6 +91,7 @@ class FPPModule(L.LightningModule):
                 "period_px": spec.period_px,
                 "step": spec.step,
                 "n_steps": spec.n_steps,
+                "quantity": dm.manifest.quantity,  # what the depth maps hold: depth or height
             }
             # one input at the data's size: the model summary then counts FLOPs per sample
             ds = next(iter(dm.datasets.values()), None)

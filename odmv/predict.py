@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import glob
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import hydra
@@ -28,28 +28,30 @@ from omegaconf import DictConfig
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
 from odmv.calibration import load_calibration
-from odmv.classical import reconstruct_scene
+from odmv.classical import reconstruct_scene, twin_options
 from odmv.cli import run_app
 from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.data.dataset import DataError, SampleSpec, check_spec, load_scene
-from odmv.fpp import period_in_camera_px
+from odmv.fpp import decode_phase, period_in_camera_px
 from odmv.inference import load_predictor
-from odmv.io.atomic import write_atomic
+from odmv.io.atomic import write_atomic, write_npy
 from odmv.io.exr import write_exr
 from odmv.io.images import IMAGE_EXTENSIONS, find_view_image, fit_to, read_image
 from odmv.io.manifest import (
     FRINGE_DIR,
+    HEIGHT_QUANTITY,
     MANIFEST,
-    FringeSpec,
     Manifest,
-    fringe_name,
     load_manifest,
 )
 from odmv.io.pointcloud import point_cloud, write_ply
 from odmv.rig import VIEW_NAMES, Camera, Rig
+from odmv.sequences import PspOptions, check_conventions, count_steps, stems, views_in
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+
+NO_RIG = "its dataset has no rig calibration (give calibration=FILE)"
 
 
 @dataclass(frozen=True)
@@ -64,8 +66,9 @@ class Scene:
         return self.folder.name
 
 
-def find_scenes(spec: str, views: list[str]) -> list[Scene]:
-    """The scenes ``input`` names: a scene, a folder of scenes, or a glob of either."""
+def find_scenes(spec: str, names: list[str]) -> list[Scene]:
+    """The scenes ``input`` names: a scene, a folder of scenes, or a glob of either; a folder
+    is a scene when it has an image of one of the stems ``names``."""
     paths = (
         sorted(Path(p) for p in glob.glob(spec) if Path(p).is_dir())
         if glob.has_magic(spec)
@@ -73,24 +76,23 @@ def find_scenes(spec: str, views: list[str]) -> list[Scene]:
     )
     scenes = []
     for path in paths:
-        scene = _as_scene(path, views)
+        scene = _as_scene(path, names)
         if scene is not None:
             scenes.append(scene)
         elif path.is_dir():
-            scenes += [s for sub in sorted(path.iterdir()) if (s := _as_scene(sub, views))]
+            scenes += [s for sub in sorted(path.iterdir()) if (s := _as_scene(sub, names))]
     if not scenes:
         raise DataError(
-            f"input: {spec}: no scenes (a dataset scene, a folder of <view>.<ext> images such "
-            f"as {views[0]}.png, or a folder of those)"
+            f"input: {spec}: no scenes (a dataset scene, a folder of images such as "
+            f"{names[0]}.png, or a folder of those)"
         )
     return scenes
 
 
-def _as_scene(path: Path, views: list[str]) -> Scene | None:
+def _as_scene(path: Path, names: list[str]) -> Scene | None:
     dataset = path.parent.parent
     if path.parent.name == "scenes" and (dataset / MANIFEST).is_file() and path.is_dir():
         return Scene(path, load_manifest(dataset))
-    names = [n for v in views for n in (v, fringe_name(v, 0, 0).removesuffix(".exr"))]
     if path.is_dir() and any(find_view_image(path, n) for n in names):
         return Scene(path)
     return None
@@ -228,7 +230,12 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
         raise ValueError("ckpt_path: give a checkpoint or model.onnx (or method=psp)")
     predictor = load_predictor(cfg.ckpt_path) if cfg.method == "net" else None
     views = predictor.views if predictor else list(VIEW_NAMES)
-    scenes = find_scenes(str(cfg.input), views)
+    if predictor is not None:
+        names = list(views)
+    else:
+        options = PspOptions.from_cfg(cfg.psp)
+        names = [options.stem(v, 0, 0, 1) for v in (cfg.get("views") or VIEW_NAMES)]
+    scenes = find_scenes(str(cfg.input), names)
     default_rig = (
         load_calibration(cfg.calibration)
         if cfg.calibration
@@ -236,7 +243,7 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
         if cfg.manifest
         else None
     )
-    if default_rig is None and any(s.manifest is None for s in scenes):
+    if default_rig is None and predictor is not None and any(s.manifest is None for s in scenes):
         print(
             "rig: none given (calibration=FILE or manifest=PATH); using the paper's default rig",
             flush=True,
@@ -252,8 +259,10 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
     with Progress(*columns, disable=not cfg.progress or len(scenes) < 2, transient=True) as bar:
         task = bar.add_task("scenes", total=len(scenes))
         for scene in scenes:
-            rig = scene.manifest.rig if scene.manifest else (default_rig or Rig())
+            out = out_root / scene.name if len(scenes) > 1 else out_root
             if predictor is not None:
+                rig = default_rig if scene.manifest is None else scene.manifest.rig
+                rig = rig or (default_rig if scene.manifest is not None else Rig())
                 have = present_views(scene, predictor, list(cfg.get("views") or []))
                 if have != list(predictor.views):
                     print(f"{scene.name}: views {', '.join(have)} (the others missing)", flush=True)
@@ -261,20 +270,39 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
                 available = np.array([v in have for v in predictor.views], np.float32)
                 x = predictor.inputs(images, rig, available)
                 depth = predictor.run(x)[0, 0].astype(np.float32)
-                period = predictor.input_spec.get("period_px")
+                period, used = predictor.input_spec.get("period_px"), predictor.views
             else:
-                depth, images, period = classical_depth(scene, reader, rig, cfg.manifest)
+                rig = scene.manifest.rig if scene.manifest else default_rig
+                seq = read_sequences(scene, reader, cfg, rig)
+                phases = write_phases(out, seq)
+                if rig is None:
+                    print(
+                        f"{scene.name}: wrote the phase of views {', '.join(seq.views)}; depth "
+                        "needs the rig's calibration (calibration=FILE)",
+                        flush=True,
+                    )
+                    results.append({"phase": phases[0], "files": phases})
+                    bar.advance(task)
+                    continue
+                depth, images, period = classical_depth(seq, rig)
+                used = seq.views
             h, w = depth.shape
-            cam = rig.camera_at(w, h)
+            quantity = predictor.input_spec.get("quantity", "depth") if predictor else "depth"
+            cam = None
+            if rig is None:
+                print(f"{scene.name}: no points.ply: {NO_RIG}", flush=True)
+            elif quantity == "height":
+                print(f"{scene.name}: no points.ply: the net predicts height, not depth")
+            else:
+                cam = rig.camera_at(w, h)
             keep = None
-            if cfg.drop_unlit and period:
-                proj = rig.projectors()[views[0]]
+            if cfg.drop_unlit and period and cam is not None:
+                proj = rig.projectors()[used[0]]
                 keep = lit_by_any_view(
                     images, period_in_camera_px(period, cam, proj), cfg.unlit_threshold
                 )
-            out = out_root / scene.name if len(scenes) > 1 else out_root
-            grey = uniform_grey(scene, reader, views, depth.shape) if cfg.colour else None
-            results.append(write_outputs(out, depth, cam, keep, grey, scene, cfg))
+            grey = uniform_grey(scene, reader, used, depth.shape) if cfg.colour else None
+            results.append(write_outputs(out, depth, cam, keep, grey, scene, cfg, quantity))
             bar.advance(task)
     seconds = time.perf_counter() - t0
     print(
@@ -285,31 +313,94 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
     return results
 
 
-def classical_depth(scene: Scene, reader: ImageReader, rig: Rig, manifest: str | None):
-    """Phase shifting on every projector's full sequences (odmv.classical.reconstruct_scene):
-    depth at the images' own size, the images (for the lit mask) and the finest period."""
-    m = scene.manifest or (load_manifest(manifest) if manifest else None)
-    fringe = m.fringe if m else FringeSpec()
-    n_f, n_s = len(fringe.periods_px), fringe.steps
-    if scene.manifest is not None:
+@dataclass(frozen=True)
+class Sequences:
+    """A scene's phase-shifting sequences: (V, F, N, H, W) linear intensity, coarsest
+    frequency first, the views they are of, and how to decode them."""
+
+    stack: np.ndarray
+    views: list[str]
+    options: PspOptions
+
+
+def read_sequences(scene: Scene, reader: ImageReader, cfg, rig) -> Sequences:
+    """A dataset scene's sequences (its manifest's conventions), or a folder's named by
+    ``psp.*`` (the periods from ``manifest=`` when ``psp.periods`` is not given)."""
+    m = scene.manifest
+    if m is not None:
         spec = check_spec(m, m.views, [m.height_px, m.width_px], None, None, with_stacks=True)
-        views = list(m.views)
         stack = load_scene(m, scene.name, spec)["fringe_stack"]
+        h, w = stack.shape[-2:]
+        coarse_first = np.argsort(m.fringe.periods_px)[::-1]
+        stack = stack.reshape(len(m.views), len(coarse_first), m.fringe.steps, h, w)
+        return Sequences(stack[:, coarse_first], list(m.views), twin_options(m))
+    options = PspOptions.from_cfg(cfg.psp)
+    if options.periods is None and cfg.manifest:
+        known = twin_options(load_manifest(cfg.manifest))
+        options = replace(options, periods=known.periods, steps=options.steps or known.steps)
+    named = list(cfg.get("views") or [])
+    if options.per_view:
+        candidates = list(rig.projectors()) if rig is not None else list(VIEW_NAMES)
+        views = named or views_in(scene.folder, options, candidates)
+        if not views:
+            raise DataError(
+                f"{scene.folder}: no sequence named like {options.stem(candidates[0], 0, 0, 1)} "
+                "(set psp.pattern and psp.first_index)"
+            )
+    elif len(named) == 1 or (not named and rig is not None and len(rig.projectors()) == 1):
+        views = named or list(rig.projectors())
     else:
-        views = [v for v in VIEW_NAMES if find_view_image(scene.folder, f"{v}_f0_s00")]
-        stems = [
-            fringe_name(v, f, k).removesuffix(".exr")
-            for v in views
-            for f in range(n_f)
-            for k in range(n_s)
-        ]
-        stack = reader.read(scene.folder, stems, None)
-    h, w = stack.shape[-2:]
-    stack = stack.reshape(len(views), n_f, n_s, h, w)
-    projectors = [rig.projectors()[v] for v in views]
-    depth = reconstruct_scene(stack, list(fringe.periods_px), rig.camera_at(w, h), projectors)
-    finest = int(np.argmin(fringe.periods_px))
-    return depth.astype(np.float32), stack[:, finest, 0], float(min(fringe.periods_px))
+        raise DataError(
+            f"psp.pattern {options.pattern!r} names no view: the folder holds one projector's "
+            "sequences; name it with views=[NAME]"
+        )
+    steps = count_steps(scene.folder, options, views[0])
+    images = [reader.read(scene.folder, stems(options, v, steps), None) for v in views]
+    n_f = len(options.frequencies)
+    stack = np.stack([im.reshape(n_f, steps, *im.shape[-2:]) for im in images])
+    for view, view_stack in zip(views, stack, strict=True):
+        check_conventions(view_stack, options, f"{scene.folder}: {view}")
+    return Sequences(stack, views, options)
+
+
+def write_phases(out: Path, seq: Sequences) -> list[Path]:
+    """Per view: ``<view>_phase.exr`` and ``.npy`` (the finest frequency's unwrapped phase,
+    rad, NaN where rejected) and ``<view>_modulation.exr`` (its fringe amplitude B, full-scale
+    units)."""
+    options, written = seq.options, []
+    periods = [1 / p for p in options.frequencies]  # in projector widths
+    out.mkdir(parents=True, exist_ok=True)
+    for view, stack in zip(seq.views, seq.stack, strict=True):
+        x, modulation, ok, _ = decode_phase(
+            stack, periods, options.min_modulation, **options.conventions()
+        )
+        phase = np.where(ok, 2 * np.pi * x / periods[-1], np.nan).astype(np.float32)
+        what = {"unit": "rad", "odmv_quantity": "unwrapped phase of the finest frequency"}
+        if options.unwrap == "spatial":
+            what["odmv_quantity"] += " (spatially unwrapped: relative)"
+        written.append(write_exr(out / f"{view}_phase.exr", {"Y": phase}, attributes=what))
+        written.append(write_npy(out / f"{view}_phase.npy", phase))
+        amplitude = {"unit": "full scale", "odmv_quantity": "fringe modulation B"}
+        written.append(
+            write_exr(
+                out / f"{view}_modulation.exr",
+                {"Y": modulation.astype(np.float32)},
+                attributes=amplitude,
+            )
+        )
+    return written
+
+
+def classical_depth(seq: Sequences, rig) -> tuple[np.ndarray, np.ndarray, float]:
+    """Phase shifting on every projector's sequences (odmv.classical.reconstruct_scene): depth
+    at the images' own size, the finest sequence's first images (for the lit mask) and its
+    period (projector px)."""
+    h, w = seq.stack.shape[-2:]
+    projectors = [rig.projectors()[v] for v in seq.views]
+    depth = reconstruct_scene(seq.stack, rig.camera_at(w, h), projectors, seq.options)
+    proj = projectors[0]
+    axis_px = proj.width_px if proj.phase_axis == "u" else proj.height_px
+    return depth.astype(np.float32), seq.stack[:, -1, 0], axis_px / seq.options.frequencies[-1]
 
 
 def write_outputs(
@@ -320,24 +411,30 @@ def write_outputs(
     grey: np.ndarray | None,
     scene: Scene,
     cfg,
+    quantity: str = "depth",
 ) -> dict[str, Path]:
+    """depth.exr (or, for a net trained on height maps, the height above the reference plane
+    in it), its preview, and points.ply where a camera (``cam``) is known."""
     attributes = {
         "unit": "mm",
-        "odmv_quantity": "camera-axis depth z (camera frame)",
+        "odmv_quantity": HEIGHT_QUANTITY
+        if quantity == "height"
+        else "camera-axis depth z (camera frame)",
         "odmv_method": str(cfg.method),
         "odmv_model": str(Path(cfg.ckpt_path).resolve()) if cfg.method == "net" else "psp",
         "odmv_input": str(scene.folder.resolve()),
     }
     out.mkdir(parents=True, exist_ok=True)
-    return {
+    written = {
         "depth": write_exr(out / "depth.exr", {"Z": depth}, attributes=attributes),
         "preview": write_preview(out / "depth.png", depth),
-        "points": write_ply(
-            out / "points.ply",
-            point_cloud(depth, cam, keep),
-            None if grey is None else grey[np.isfinite(depth) & (True if keep is None else keep)],
-        ),
     }
+    if cam is not None:
+        kept = np.isfinite(depth) & (True if keep is None else keep)
+        written["points"] = write_ply(
+            out / "points.ply", point_cloud(depth, cam, keep), None if grey is None else grey[kept]
+        )
+    return written
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="predict")

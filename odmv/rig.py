@@ -280,28 +280,33 @@ class Rig:
         return cls(CameraSpec(**cam), ProjectorSpec(**proj))
 
     def geometry(self, width_px: int, height_px: int | None = None) -> dict:
-        """Calibration at one resolution as plain JSON-able lists (stored in the manifest)."""
-        cam = self.camera_at(width_px, height_px)
-        return {
-            "camera": {
-                "width_px": cam.width_px,
-                "height_px": cam.height_px,
-                "K": cam.K.tolist(),
-                "dist_k1_k2_p1_p2": cam.dist.tolist(),
-                "R_world_to_camera": cam.R.tolist(),
-                "t_mm": cam.t.tolist(),
-                "P": cam.P.tolist(),
-            },
-            "projectors": {
-                name: {
-                    "width_px": p.width_px,
-                    "height_px": p.height_px,
-                    "K": p.K.tolist(),
-                    "R_world_to_projector": p.R.tolist(),
-                    "t_mm": p.t.tolist(),
-                    "P": p.P.tolist(),
-                    "phase_axis": p.phase_axis,
-                }
-                for name, p in self.projectors().items()
-            },
-        }
+        return rig_geometry(self, width_px, height_px)
+
+
+def rig_geometry(rig, width_px: int, height_px: int | None = None) -> dict:
+    """A rig's calibration (a :class:`Rig` or a calibration file's) at one resolution as plain
+    JSON-able lists (stored in the manifest)."""
+    cam = rig.camera_at(width_px, height_px)
+    return {
+        "camera": {
+            "width_px": cam.width_px,
+            "height_px": cam.height_px,
+            "K": cam.K.tolist(),
+            "dist_k1_k2_p1_p2": cam.dist.tolist(),
+            "R_world_to_camera": cam.R.tolist(),
+            "t_mm": cam.t.tolist(),
+            "P": cam.P.tolist(),
+        },
+        "projectors": {
+            name: {
+                "width_px": p.width_px,
+                "height_px": p.height_px,
+                "K": p.K.tolist(),
+                "R_world_to_projector": p.R.tolist(),
+                "t_mm": p.t.tolist(),
+                "P": p.P.tolist(),
+                "phase_axis": p.phase_axis,
+            }
+            for name, p in rig.projectors().items()
+        },
+    }

@@ -80,6 +80,29 @@ def _check_values(path: Path, data: dict[str, np.ndarray], nan_depth: bool) -> s
         masks = (DEPTH_FILE, LIT_FILE, FOOTPRINT_FILE, PROJ_COORD_FILE)
         if name not in masks and not np.isfinite(a).all():
             return f"{path}: non-finite pixel values in channel {c!r}"
+        if name not in masks:
+            problem = _check_intensity(path, a)
+            if problem:
+                return problem
+    return None
+
+
+def _check_intensity(path: Path, a: np.ndarray) -> str | None:
+    """Fringe images hold linear intensity: never negative, above 1.5 (an 8- or 16-bit value
+    not divided by its full scale) on at most 1 % of the pixels."""
+    lo, hi = float(a.min(initial=0)), float(a.max(initial=0))
+    if lo < 0:
+        return (
+            f"{path}: fringe intensities in [{lo:.3g}, {hi:.3g}] are negative; an import of "
+            "[-1, 1] data needs python -m odmv.convert ... intensity=auto"
+        )
+    bright = float((a > 1.5).mean())
+    if bright > 0.01:
+        return (
+            f"{path}: {bright:.1%} of the fringe intensities lie above 1.5 (range [{lo:.3g}, "
+            f"{hi:.3g}]): integer values not divided by their full scale; convert with "
+            "intensity=auto"
+        )
     return None
 
 

@@ -3,15 +3,18 @@ accepts it -> the data module trains on it (invalid pixels carried as NaN depth)
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
 import scipy.io
-from helpers import compose_config, tiny_overrides
+from helpers import calibration_of, compose_config, tiny_overrides
 from PIL import Image as PILImage
 
 from odmv.convert import ConvertError, convert
 from odmv.io.exr import read_channel
+from odmv.io.manifest import HEIGHT_QUANTITY, load_manifest
+from odmv.sequences import PspOptions
 from odmv.train import train
 from odmv.validate import validate
 
@@ -29,8 +32,8 @@ def _depth(h, w, base, invalid):
     return d
 
 
-def _nguyen(src, h=40, w=72):  # 40 x 72: cropped to 32 x 64
-    for part, n in (("train", 10), ("test", 2)):
+def _nguyen(src, h=40, w=72, n_train=10):  # 40 x 72: cropped to 32 x 64
+    for part, n in (("train", n_train), ("test", 2)):
         x = np.stack([_fringe(h, w) * 255 for _ in range(n)])[..., None].astype(np.float32)
         z = np.stack([_depth(h, w, 900, 0.0) for _ in range(n)])[..., None].astype(np.float32)
         np.save(src / f"X_{part}_fringe.npy", x)
@@ -85,9 +88,17 @@ def test_import_validates_and_trains(fmt, tmp_path):
     assert {"train", "val", "test"} <= set(splits)
     depth = read_channel(out / "scenes" / "000000" / "depth.exr", "Z")
     assert np.isnan(depth).any() and np.isfinite(depth).any()  # the invalid band carried over
+    if fmt == "uhrnet":  # a height map, so trained and scored as height
+        assert meta["quantity"] == HEIGHT_QUANTITY and meta["units"]["depth"] == HEIGHT_QUANTITY
+    metrics = _train_on(out, tmp_path, m.views, size)
+    assert math.isfinite(metrics["test/mae_mm"]) and math.isfinite(metrics["test/loss"])
+
+
+def _train_on(dataset, tmp_path, views, size, *extra):
+    """One tiny UNet epoch on ``dataset`` at its own ``size``; returns the test metrics."""
     overrides = [
         o
-        for o in tiny_overrides(out, tmp_path)
+        for o in tiny_overrides(dataset, tmp_path)
         if not o.startswith(("model.net.", "data.resolution"))
     ]
     cfg = compose_config(
@@ -96,12 +107,89 @@ def test_import_validates_and_trains(fmt, tmp_path):
             *overrides,
             "model=unet",
             "widths.unet=4",
-            f"views={list(m.views)}".replace("'", ""),
+            f"views={list(views)}".replace("'", ""),
             f"data.resolution=[{size[0]},{size[1]}]",
+            *extra,
         ],
     )
-    metrics = train(cfg)
-    assert math.isfinite(metrics["test/mae_mm"]) and math.isfinite(metrics["test/loss"])
+    return train(cfg)
+
+
+def test_a_uhrnet_sample_becomes_height_in_0_1_without_its_fill(tmp_path, capsys):
+    """The sample the UHRNet repository ships: fringes in [-1, 1], height with -105 fill."""
+    src = tmp_path / "src"
+    src.mkdir()
+    fringe = (2 * _fringe(32, 48) - 1).astype(np.float32)
+    height = RNG.uniform(60, 180, (32, 48)).astype(np.float32)
+    height[:, :10] = -105.0  # no data
+    height[:, 10:20] = -97.0 + RNG.normal(0, 0.5, (32, 10))  # the measured background
+    np.save(src / "fringe_pattern.npy", fringe)
+    np.save(src / "height_map.npy", height)
+    m = convert("uhrnet", src, tmp_path / "ds")
+    assert "stored in [-1, 1], mapped by (x + 1) / 2" in capsys.readouterr().out
+    image = read_channel(tmp_path / "ds" / "scenes" / "000000" / "fringe" / "right_f0_s00.exr", "Y")
+    np.testing.assert_allclose(image, (fringe + 1) / 2, atol=1e-6)
+    meta = json.loads((tmp_path / "ds" / "manifest.json").read_text())
+    assert meta["quantity"] == HEIGHT_QUANTITY and meta["rig"] is None and m.rig is None
+    lo, hi = meta["depth_range_mm"]
+    assert -100 < lo < -95 and 170 < hi <= 180  # over the valid pixels only
+    depth = read_channel(tmp_path / "ds" / "scenes" / "000000" / "depth.exr", "Z")
+    assert np.isnan(depth[:, :10]).all() and np.isfinite(depth[:, 10:]).all()
+    assert validate(tmp_path / "ds").ok
+    convert("uhrnet", src, tmp_path / "raw", intensity="as_is")
+    (problem,) = validate(tmp_path / "raw").problems
+    assert re.fullmatch(
+        r".*right_f0_s00.exr: fringe intensities in \[-0.79, 0.79\] are negative; .*intensity=auto",
+        problem,
+    )
+
+
+def test_a_source_without_val_needs_and_takes_val_from_train(tmp_path, capsys):
+    """Labelled train and test only: the error names the fix, and the fix trains."""
+    src = tmp_path / "src"
+    src.mkdir()
+    size = _nguyen(src, n_train=5)  # too few for the format's own val share
+    m = convert("nguyen2020", src, tmp_path / "ds")
+    assert {s["split"] for s in m.scenes} == {"train", "test"}
+    with pytest.raises(ValueError, match=r"the val split .* is empty; set data.val_from_train="):
+        _train_on(tmp_path / "ds", tmp_path / "a", m.views, size)
+    metrics = _train_on(tmp_path / "ds", tmp_path / "b", m.views, size, "data.val_from_train=0.2")
+    assert "1 of the 5 training scenes are the val split" in capsys.readouterr().out
+    assert math.isfinite(metrics["test/mae_mm"])
+
+
+def test_sequences_of_a_rig_become_a_dataset_with_the_classical_ground_truth(
+    tiny_dataset, tmp_path
+):
+    """The twin's sequences as 16-bit PNG with its calibration file, converted back: the
+    decoded depth is the twin's where kept, the calibration travels with the dataset (the
+    reference-phase input works), and a net trains on it."""
+    twin = load_manifest(tiny_dataset)
+    src = tmp_path / "captures"
+    ids = [s["id"] for s in twin.scenes[:5]]
+    for sid in ids:
+        for path in (twin.scene_dir(sid) / "fringe").glob("*_f*_s*.exr"):
+            level = np.round(np.clip(read_channel(path, "Y"), 0, 1) * 65535).astype(np.uint16)
+            (src / sid).mkdir(parents=True, exist_ok=True)
+            PILImage.fromarray(level).save(src / sid / f"{path.stem}.png")
+    calibration = tmp_path / "rig.json"
+    calibration.write_text(json.dumps(calibration_of(twin.rig, (64, 64))))
+    m = convert("sequences", src, tmp_path / "ds", calibration=calibration, psp=PspOptions())
+    assert m.views == twin.views and m.fringe.steps == 12
+    meta = json.loads((tmp_path / "ds" / "manifest.json").read_text())
+    assert meta["source"]["decoder"]["periods"] is None  # the twin's: 1, 8 and 64 periods
+    assert meta["rig"]["calibration"]["reference_plane_mm"] == 150.0
+    assert validate(tmp_path / "ds").ok
+    errors, kept = [], []
+    for k, sid in enumerate(ids):
+        truth = read_channel(twin.scene_dir(sid) / "depth.exr", "Z")
+        depth = read_channel(m.scene_dir(f"{k:06d}") / "depth.exr", "Z")
+        ok = np.isfinite(depth)
+        errors.append(np.abs(depth - truth)[ok])
+        kept.append(ok.mean())
+    assert np.concatenate(errors).mean() < 0.05 and min(kept) > 0.5
+    metrics = _train_on(tmp_path / "ds", tmp_path / "run", m.views, (32, 32), "reference=true")
+    assert math.isfinite(metrics["test/mae_mm"])
 
 
 def test_reference_input_is_refused_for_an_import(tmp_path):
@@ -118,7 +206,7 @@ def test_reference_input_is_refused_for_an_import(tmp_path):
             "reference=true",
         ],
     )
-    with pytest.raises(ValueError, match="imported without a rig calibration"):
+    with pytest.raises(ValueError, match="has no rig calibration"):
         train(cfg)
 
 

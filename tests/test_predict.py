@@ -6,7 +6,7 @@ import shutil
 import numpy as np
 import OpenEXR
 import pytest
-from helpers import compose_config
+from helpers import calibration_of, compose_config
 from PIL import Image as PILImage
 
 from odmv.io.exr import read_channel, write_exr
@@ -155,34 +155,6 @@ def test_bad_images_are_named(tmp_path):
         read_image(tmp_path / "missing.tif")
 
 
-def _calibration_of(rig, size):
-    """The default rig written as an OpenCV-style calibration (pixel centres at integers)."""
-    from odmv.calibration import _WORLD_TO_CAMERA
-
-    cam = rig.camera_at(*size)
-    shift = np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
-    t_wc = cam.t
-    projectors = {}
-    for name, p in rig.projectors().items():
-        R_cp = p.R @ _WORLD_TO_CAMERA.T
-        projectors[name] = {
-            "image_size": [p.width_px, p.height_px],
-            "K": (p.K - shift).tolist(),
-            "R": R_cp.tolist(),
-            "t": (p.t - R_cp @ t_wc).tolist(),
-            "phase_axis": p.phase_axis,
-        }
-    return {
-        "camera": {
-            "image_size": list(size),
-            "K": (cam.K - shift).tolist(),
-            "dist": cam.dist.tolist(),
-        },
-        "reference_plane_mm": float(cam.center[2]),
-        "projectors": projectors,
-    }
-
-
 def test_an_opencv_calibration_gives_the_rig_it_describes(trained, tiny_dataset, tmp_path):
     import yaml
 
@@ -191,7 +163,7 @@ def test_an_opencv_calibration_gives_the_rig_it_describes(trained, tiny_dataset,
 
     rig = load_manifest(tiny_dataset).rig
     path = tmp_path / "rig.yaml"
-    path.write_text(yaml.safe_dump(_calibration_of(rig, (64, 64))))
+    path.write_text(yaml.safe_dump(calibration_of(rig, (64, 64))))
     calibrated = load_calibration(path)
     np.testing.assert_allclose(calibrated.camera_at(32, 32).P, rig.camera_at(32, 32).P, atol=1e-9)
     for name, p in rig.projectors().items():

@@ -23,13 +23,14 @@ from odmv.data.dataset import (
     SampleSpec,
     check_spec,
     fingerprint,
+    hold_out_val,
     load_depth,
     load_scene,
     split_scenes,
 )
 from odmv.data.normalize import Normalization
 from odmv.data.views import ViewDropout
-from odmv.io.manifest import MANIFEST, Manifest, ManifestError, load_manifest
+from odmv.io.manifest import MANIFEST, SPLITS, Manifest, ManifestError, load_manifest
 from odmv.rig import VIEW_NAMES
 
 #: The splits each Lightning stage reads (evaluation never decodes the training split).
@@ -78,6 +79,7 @@ class FPPDataModule(L.LightningDataModule):
         with_phase: bool = False,
         split_seed: int = 0,
         split_fractions: dict | None = None,
+        val_from_train: float | None = None,
         cache: bool = True,
         cache_dir: str | None = None,
         depth_half_range_mm: float = 10.0,
@@ -104,6 +106,7 @@ class FPPDataModule(L.LightningDataModule):
         self.fringe_frequency, self.fringe_step = fringe_frequency, fringe_step
         self.with_stacks, self.with_phase = with_stacks, with_phase
         self.split_seed, self.split_fractions = split_seed, split_fractions
+        self.val_from_train = val_from_train
         self.cache = cache
         self.cache_dir = Path(cache_dir) if cache_dir else self.root.parent / ".odmv-cache"
         self.depth_half_range_mm, self.intensity_max = depth_half_range_mm, intensity_max
@@ -186,14 +189,16 @@ class FPPDataModule(L.LightningDataModule):
         )
         sat = m.extra.get("simulation", {}).get("render", {}).get("saturation", 1.0)
         intensity_max = self.intensity_max if self.intensity_max is not None else sat
-        if "depth_range_mm" in m.extra:  # an import: no rig model, its own depth range
-            if self.reference:
-                raise DataError(
-                    f"reference: {m.root} was imported without a rig calibration, so the "
-                    "reference-plane phase is unknown; use reference=false"
-                )
+        if self.reference and m.rig is None:
+            raise DataError(
+                f"reference: {m.root} has no rig calibration, so the reference-plane phase is "
+                "unknown; use reference=false"
+            )
+        if "depth_range_mm" in m.extra:  # an import: its own depth (or height) range
             lo, hi = m.extra["depth_range_mm"]
-            self.norm = Normalization.for_depth_range(lo, hi, intensity_max, self.depth_target)
+            self.norm = Normalization.for_depth_range(
+                lo, hi, intensity_max, self.depth_target, stored=m.quantity
+            )
         else:
             self.norm = Normalization.for_working_distance(
                 m.rig.camera.working_distance_mm,
@@ -202,6 +207,14 @@ class FPPDataModule(L.LightningDataModule):
                 self.depth_target,
             )
         self.splits = split_scenes(m, self.split_fractions, self.split_seed)
+        if self.val_from_train and not self.splits["val"]:
+            n = hold_out_val(self.splits, self.val_from_train, self.split_seed)
+            print(
+                f"data.val_from_train={self.val_from_train}: {n} of the "
+                f"{n + len(self.splits['train'])} training scenes are the val split "
+                f"(seed {self.split_seed})",
+                flush=True,
+            )
         self.manifest = m
 
     def mean_depth_mm(self, split: str = "train") -> float | None:
@@ -280,10 +293,14 @@ class FPPDataModule(L.LightningDataModule):
     def _loader(self, split: str, shuffle: bool) -> torch.utils.data.DataLoader:
         ds = self.datasets.get(split)
         if ds is None or len(ds) == 0:
-            raise DataError(
-                f"data: the {split} split of {self.root} is empty; add scenes or "
-                "change data.split_fractions"
-            )
+            labelled = all(sc.get("split") in SPLITS for sc in self.manifest.scenes)
+            if labelled and split == "val":
+                fix = "set data.val_from_train=0.1 to hold out a share of the training scenes"
+            elif labelled:
+                fix = "its scenes are labelled (data.split_fractions does not apply): add scenes"
+            else:
+                fix = "add scenes or change data.split_fractions"
+            raise DataError(f"data: the {split} split of {self.root} is empty; {fix}")
         sampler = None
         if split != "train" and dist.is_available() and dist.is_initialized():
             # DDP: each rank gets its share of the scenes, none twice (Lightning's default

@@ -139,6 +139,23 @@ def split_scenes(m: Manifest, fractions: dict | None, seed: int) -> dict[str, li
     }
 
 
+def hold_out_val(splits: dict[str, list[str]], share: float, seed: int) -> int:
+    """Move a seeded ``share`` of the training scenes (at least one) into an empty val split;
+    returns how many moved. For sources labelled train and test only."""
+    if not 0 < share < 1:
+        raise DataError(f"data.val_from_train: {share} must lie between 0 and 1")
+    train = splits["train"]
+    n = max(1, int(round(share * len(train))))
+    if n >= len(train):
+        raise DataError(
+            f"data.val_from_train: {len(train)} training scene(s) cannot spare {n} for val"
+        )
+    picked = set(np.random.default_rng(seed).permutation(len(train))[:n].tolist())
+    splits["val"] = [sid for i, sid in enumerate(train) if i in picked]
+    splits["train"] = [sid for i, sid in enumerate(train) if i not in picked]
+    return n
+
+
 def _resize(a: np.ndarray, h: int, w: int, mode: str) -> np.ndarray:
     if a.shape[-2:] == (h, w):
         return a

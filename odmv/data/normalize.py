@@ -40,15 +40,25 @@ class Normalization:
 
     @classmethod
     def for_depth_range(
-        cls, lo_mm: float, hi_mm: float, intensity_max: float = 1.0, target: str = "depth"
+        cls,
+        lo_mm: float,
+        hi_mm: float,
+        intensity_max: float = 1.0,
+        target: str = "depth",
+        stored: str = "depth",
     ) -> Normalization:
-        """For a dataset without a rig model (an import): its depth range [lo, hi] mm maps
-        to [-1, 1]; as height, the farthest depth is the plane at 0 and the nearest is 2."""
+        """For a dataset without a rig model (an import): its range [lo, hi] mm maps to
+        [-1, 1]; as height, the farthest depth (``stored="height"``: the lowest height) is the
+        plane at 0 and the nearest (the highest) is 2."""
         half = (hi_mm - lo_mm) / 2 * 1.05  # a margin for depths beyond the training range
         if target == "depth":
             return cls(intensity_max, (lo_mm + hi_mm) / 2, half)
         if target == "height":
-            return cls(intensity_max, hi_mm, -half)
+            return (
+                cls(intensity_max, lo_mm, half)
+                if stored == "height"
+                else cls(intensity_max, hi_mm, -half)
+            )
         raise ValueError(f"data.depth_target: {target!r} is not 'depth' or 'height'")
 
     def fringes(self, images):

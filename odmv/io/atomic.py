@@ -69,6 +69,16 @@ def write_json(path: str | os.PathLike, data: dict) -> Path:
     return write_text(path, json.dumps(data, indent=1) + "\n")
 
 
+def write_npy(path: str | os.PathLike, array: np.ndarray) -> Path:
+    """One array as ``.npy`` (through a file object: numpy appends no suffix)."""
+
+    def write(tmp: Path) -> None:
+        with tmp.open("wb") as fh:
+            np.save(fh, array)
+
+    return write_atomic(path, write)
+
+
 def write_npz(path: str | os.PathLike, arrays: dict) -> Path:
     """Named arrays as a compressed ``.npz`` (through a file object: numpy appends no suffix)."""
 

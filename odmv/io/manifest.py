@@ -11,10 +11,13 @@ import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from odmv.calibration import CalibratedRig, CalibrationError, parse_calibration
 from odmv.io.atomic import write_json
 from odmv.rig import VIEW_NAMES, Rig
 
 FORMAT = "odmv-fpp-dataset"
+#: ``quantity`` of a dataset whose depth.exr holds height above the reference plane.
+HEIGHT_QUANTITY = "height above the reference plane, mm"
 VERSION = 1
 MANIFEST = "manifest.json"
 SPLITS = ("train", "val", "test")
@@ -87,11 +90,17 @@ class Manifest:
     width_px: int
     views: tuple[str, ...]
     fringe: FringeSpec
-    rig: Rig
+    rig: Rig | CalibratedRig | None  # None: not known (an import without a calibration)
     images: str = "full"
     scenes: list[dict] = field(default_factory=list)
     version: int = VERSION
     extra: dict = field(default_factory=dict)
+
+    @property
+    def quantity(self) -> str:
+        """What ``depth.exr`` holds: ``depth`` (camera-axis z, mm; the twin's, most imports')
+        or ``height`` (above the reference plane, mm; e.g. the uhrnet format's)."""
+        return "height" if self.extra.get("quantity") == HEIGHT_QUANTITY else "depth"
 
     def scene_dir(self, scene_id: str) -> Path:
         return self.root / "scenes" / scene_id
@@ -122,7 +131,7 @@ class Manifest:
             "version": self.version,
             "units": {
                 "length": "mm",
-                "depth": "camera-axis z in mm",
+                "depth": HEIGHT_QUANTITY if self.quantity == "height" else "camera-axis z in mm",
                 "projector_coord": "projector pixels along each projector's phase_axis",
                 "fringe": "linear relative irradiance (float32), 1 = white on a unit-albedo "
                 "surface facing the projector at the reference distance",
@@ -131,13 +140,19 @@ class Manifest:
             "views": list(self.views),
             "fringe": asdict(self.fringe),
             "images": self.images,
-            "rig": {
-                "spec": self.rig.to_dict(),
-                "geometry": self.rig.geometry(self.width_px, self.height_px),
-            },
+            "rig": self._rig_entry(),
             "scenes": self.scenes,
             **self.extra,
         }
+
+    def _rig_entry(self) -> dict | None:
+        if self.rig is None:
+            return None
+        if isinstance(self.rig, CalibratedRig):
+            entry = {"calibration": self.rig.source}
+        else:
+            entry = {"spec": self.rig.to_dict()}
+        return entry | {"geometry": self.rig.geometry(self.width_px, self.height_px)}
 
     def write(self) -> Path:
         """Write ``manifest.json`` atomically."""
@@ -150,6 +165,24 @@ def _require(d: dict, key: str, kind: type | tuple, path: Path):
     if not isinstance(d[key], kind):
         raise ManifestError(f"{path}: key {key!r} has the wrong type ({type(d[key]).__name__})")
     return d[key]
+
+
+def _rig_of(entry, known: bool, path: Path) -> Rig | CalibratedRig | None:
+    """The manifest's rig: the twin's (``spec``), a calibration file's (``calibration``), or
+    None where it is not known (``null``, or an older import's placeholder: rig_known false)."""
+    if entry is None or known is False:
+        return None
+    if not isinstance(entry, dict):
+        raise ManifestError(f"{path}: key 'rig' has the wrong type ({type(entry).__name__})")
+    if "calibration" in entry:
+        try:
+            return parse_calibration(entry["calibration"], f"{path}: rig.calibration")
+        except CalibrationError as exc:
+            raise ManifestError(str(exc)) from None
+    try:
+        return Rig.from_dict(entry.get("spec", {}))
+    except TypeError as exc:
+        raise ManifestError(f"{path}: bad rig specification ({exc})") from None
 
 
 def load_manifest(root: str | os.PathLike) -> Manifest:
@@ -196,11 +229,9 @@ def load_manifest(root: str | os.PathLike) -> Manifest:
     images = d.get("images", "full")
     if images not in IMAGE_MODES:
         raise ManifestError(f"{path}: images is {images!r}, expected one of {IMAGE_MODES}")
-    rig_d = _require(d, "rig", dict, path)
-    try:
-        rig = Rig.from_dict(rig_d.get("spec", {}))
-    except TypeError as exc:
-        raise ManifestError(f"{path}: bad rig specification ({exc})") from None
+    if "rig" not in d:
+        raise ManifestError(f"{path}: missing key 'rig'")
+    rig = _rig_of(d["rig"], d.get("rig_known", True), path)
     scenes = _require(d, "scenes", list, path)
     seen = set()
     for i, s in enumerate(scenes):
