@@ -12,8 +12,11 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from odmv.data.reference import view_channels as reference_channels
 from odmv.rig import VIEW_SETS, check_views
 
-#: the Hydra config tree every app composes from
-CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
+#: the Hydra config tree every app composes from: conf/ of the checkout this module is in (as
+#: odmv/conf links to it), or the copy an installed wheel carries there. A path of this very
+#: tree rather than pkg://odmv.conf, which an editable install would resolve to its own
+#: checkout even for a worktree run by PYTHONPATH.
+CONF_DIR = str(Path(__file__).resolve().parent / "conf")
 
 
 def compose_train(overrides: list[str], hydra_cfg: bool = False) -> DictConfig:

@@ -38,7 +38,7 @@ def main(argv: list[str]) -> int:
     print("\n" + report(em))
     print(f"the model's MAE is {ratio:.1f}x smaller than the constant predictor's")
     print(f"wall time: {minutes:.1f} min")
-    print(f"TensorBoard: .venv/bin/tensorboard --logdir {out / 'tensorboard'}")
+    print(f"TensorBoard: tensorboard --logdir {out / 'tensorboard'}")
     print(f"figures    : {out / 'evaluation' / 'figures'}")
     return 0
 

@@ -145,6 +145,7 @@ def _run_key(cfg: DictConfig) -> str:
         "seeds",
         "contenders",
         "logger",
+        "optimized_metric",
     ):
         d.pop(k, None)
     # this net's entry is in model.net / loss / optimizer; the other nets' are not this run's

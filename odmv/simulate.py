@@ -1,4 +1,6 @@
-"""Render a multi-view FPP dataset: ``python -m odmv.simulate out=PATH scenes=N ...``.
+"""Render a multi-view FPP dataset: ``python -m odmv.simulate out=PATH scenes=N ...``;
+``shard=I/N`` renders one shard of it, ``merge=[DIR,...] out=PATH`` joins shards
+(odmv.sim.shards).
 
 A thin Hydra wrapper around :func:`odmv.sim.writer.simulate`; settings in conf/simulate.yaml.
 """
@@ -12,6 +14,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from odmv.cli import run_app
 from odmv.config import CONF_DIR
+from odmv.io.manifest import load_manifest
+from odmv.sim.shards import merge, parse_shard, shard_ids
 from odmv.sim.writer import SimSettings, simulate
 from odmv.validate import validate
 
@@ -22,21 +26,33 @@ def settings_from_config(cfg: DictConfig) -> SimSettings:
 
 
 def run(cfg: DictConfig) -> int:
-    """Render, then validate; returns a process exit code."""
+    """Render (or merge shards), then validate; returns a process exit code."""
+    if cfg.get("merge"):
+        m = merge(list(cfg.merge), cfg.out)
+        print(f"{m.root}: {len(m.scenes)} scenes joined from {len(cfg.merge)} shard folders")
+        return check(m.root, cfg.validate)
     s = settings_from_config(cfg)
-    rep = simulate(s, workers=cfg.workers, progress=cfg.progress)
+    shard = parse_shard(cfg.get("shard"))
+    rep = simulate(s, workers=cfg.workers, progress=cfg.progress, shard=shard)
     rate = rep.rendered / rep.seconds if rep.seconds > 0 else float("nan")
+    part = "" if shard is None else f"shard {shard[0]}/{shard[1]}: "
     print(
-        f"{s.out}: rendered {rep.rendered} scenes ({rep.images} fringe images) in "
+        f"{s.out}: {part}rendered {rep.rendered} scenes ({rep.images} fringe images) in "
         f"{rep.seconds:.1f} s ({rate:.2f} scenes/s), {rep.skipped} already complete"
     )
-    if cfg.validate == "off":
+    ids = None if shard is None else shard_ids(load_manifest(s.out), shard)
+    return check(s.out, cfg.validate, ids)
+
+
+def check(root, how: str, ids: list[str] | None = None) -> int:
+    """Validate (quick: headers; full: every pixel; off) the dataset or the scenes ``ids``."""
+    if how == "off":
         return 0
-    report = validate(s.out, deep=cfg.validate == "full")
+    report = validate(root, deep=how == "full", scene_ids=ids)
     if not report.ok:
         print("\n".join(report.problems))
         return 1
-    print(report.summary(s.out))
+    print(report.summary(root))
     return 0
 
 

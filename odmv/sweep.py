@@ -14,9 +14,10 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from odmv.cli import JobFailed
-from odmv.io.atomic import write_csv
+from odmv.io.atomic import write_csv, write_text
 
 RESULTS = "results.csv"
+SUMMARY = "summary.md"
 
 
 def append_row(path: Path, row: dict) -> None:
@@ -52,6 +53,10 @@ class CollectResults(Callback):
     def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
         path = Path(config.hydra.sweep.dir) / RESULTS
         rows = list(csv.DictReader(path.open())) if path.is_file() else []
+        metric = config.get("optimized_metric")
+        if metric and any(r.get(metric) for r in rows):
+            direction = str(config.hydra.sweeper.get("direction", "minimize"))
+            write_summary(path.with_name(SUMMARY), rows, metric, direction == "maximize")
         failed = [r for r in rows if r.get("status") == "failed"]
         if failed:
             print(
@@ -59,6 +64,22 @@ class CollectResults(Callback):
                 file=sys.stderr,
             )
             sys.exit(2)
+
+
+def write_summary(path: Path, rows: list[dict], metric: str, maximize: bool) -> None:
+    """``summary.md``: the jobs ranked by ``metric``, the best named first (and printed)."""
+    done = [r for r in rows if r.get("status") == "ok" and r.get(metric)]
+    done.sort(key=lambda r: float(r[metric]), reverse=maximize)
+    best = done[0]
+    line = f"best: job {best['job']} ({path.parent / best['job']}), {metric} = {best[metric]}"
+    table = [f"| job | {metric} | overrides |", "|---:|---:|---|"]
+    table += [f"| {r['job']} | {float(r[metric]):.6g} | {r['overrides']} |" for r in done]
+    failed = len(rows) - len(done)
+    text = f"# Sweep summary\n\n{line}\n\n" + "\n".join(table) + "\n"
+    if failed:
+        text += f"\n{failed} job(s) failed or gave no {metric} (results.csv says why).\n"
+    write_text(path, text)
+    print(line, flush=True)
 
 
 def _one_line(value) -> str:

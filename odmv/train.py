@@ -148,11 +148,14 @@ def train(cfg: DictConfig) -> dict[str, float]:
     if trainer.is_global_zero:  # DDP: one process writes the run's files
         dm.save_split(out_dir / "split.json")
     metrics: dict = {}
+    optimized = cfg.get("optimized_metric")
+    if optimized:
+        metrics[optimized] = best_value(trainer, optimized)
     if cfg.test:
         best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
         module.test_dir = out_dir
         results = trainer.test(module, datamodule=dm, ckpt_path=best or None, weights_only=True)
-        metrics = {k: float(v) for k, v in results[0].items()}
+        metrics.update({k: float(v) for k, v in results[0].items()})
         overrides = task_overrides()
         metrics.update(
             best_checkpoint=best,
@@ -179,8 +182,33 @@ def train(cfg: DictConfig) -> dict[str, float]:
     return metrics
 
 
+def best_value(trainer: L.Trainer, name: str) -> float:
+    """The best value of a logged metric over the run: the checkpoint callback's best score
+    when it monitors ``name``, else the value at the last epoch."""
+    checkpoint = trainer.checkpoint_callback
+    if checkpoint is not None and checkpoint.monitor == name and checkpoint.best_model_score:
+        return float(checkpoint.best_model_score)
+    if name not in trainer.callback_metrics:
+        logged = ", ".join(sorted(trainer.callback_metrics)) or "none"
+        raise ValueError(f"optimized_metric: {name} was not logged (logged: {logged})")
+    return float(trainer.callback_metrics[name])
+
+
+class Metrics(dict):
+    """A run's metrics that a sweeper reads as one number: the value of ``optimized_metric``."""
+
+    def __init__(self, metrics: dict, optimized: str | None):
+        super().__init__(metrics)
+        self.optimized = optimized
+
+    def __float__(self) -> float:
+        if not self.optimized:
+            raise TypeError("optimized_metric is not set: nothing for a sweeper to optimize")
+        return float(self[self.optimized])
+
+
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="train")
-def main(cfg: DictConfig) -> dict[str, float]:
+def main(cfg: DictConfig) -> Metrics | JobFailed:
     hydra_dir = Path(cfg.paths.output_dir)
 
     def body() -> tuple[DictConfig, dict]:
@@ -195,13 +223,15 @@ def main(cfg: DictConfig) -> dict[str, float]:
     out = Path(run_cfg.paths.output_dir)
     if out.resolve() != hydra_dir.resolve():  # continued another run's folder
         remove_if_empty(hydra_dir)
-    rank_zero_print(f"run folder: {out}\n  TensorBoard: tensorboard --logdir {out / 'tensorboard'}")
+    rank_zero_print(f"run folder: {out}")
+    if "tensorboard" in (run_cfg.get("logger") or {}):
+        rank_zero_print(f"  TensorBoard: tensorboard --logdir {out / 'tensorboard'}")
     if metrics:
         rank_zero_print(
             "  test: "
             + ", ".join(f"{k}={v:.4f}" for k, v in metrics.items() if k.startswith("test/"))
         )
-    return metrics
+    return Metrics(metrics, run_cfg.get("optimized_metric"))
 
 
 def check_launch(cfg: DictConfig) -> None:

@@ -106,8 +106,9 @@ def _check_intensity(path: Path, a: np.ndarray) -> str | None:
     return None
 
 
-def validate(root: str | Path, deep: bool = True) -> Report:
-    """Check every file the manifest promises. ``deep=False`` reads headers only."""
+def validate(root: str | Path, deep: bool = True, scene_ids: list[str] | None = None) -> Report:
+    """Check every file the manifest promises (of the scenes ``scene_ids`` only, e.g. one
+    shard's). ``deep=False`` reads headers only."""
     root = Path(root)
     try:
         m: Manifest = load_manifest(root)
@@ -118,7 +119,9 @@ def validate(root: str | Path, deep: bool = True) -> Report:
     views = list(m.views)
     if not m.scenes:
         report.problems.append(f"{root / 'manifest.json'}: lists no scenes")
-    for scene in m.scenes:
+    scenes = m.scenes if scene_ids is None else [s for s in m.scenes if s["id"] in scene_ids]
+    report.scenes = len(scenes)
+    for scene in scenes:
         sdir = m.scene_dir(scene["id"])
         if not sdir.is_dir():
             report.problems.append(f"{sdir}: scene folder missing")

@@ -61,6 +61,29 @@ def test_same_seed_gives_identical_bytes_with_any_worker_count(reference, tmp_pa
     _same_tree(reference, out)
 
 
+@pytest.mark.slow
+def test_shards_on_the_joblib_launcher_merge_into_the_same_bytes(reference, tmp_path):
+    """Two shards as two jobs of Hydra's local joblib launcher, each into its own folder, then
+    joined: every file equals the unsharded run's (and a shard validates on its own)."""
+    shards = [
+        sys.executable, "-m", "odmv.simulate", "-m", "hydra/launcher=joblib",
+        "hydra.launcher.n_jobs=2", "shard=0/2,1/2", "out=shard${hydra:job.num}", "scenes=4",
+        "seed=3", *SMALL,
+    ]  # fmt: skip
+    done = subprocess.run(shards, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "shard 1/2: rendered 2 scenes" in done.stdout
+    assert sorted(p.name for p in (tmp_path / "shard1" / "scenes").iterdir()) == [
+        "000001",
+        "000003",
+    ]
+    merged = tmp_path / "merged"
+    assert run(_cfg(merged, "merge=[shard0,shard1]".replace("shard", f"{tmp_path}/shard"))) == 0
+    _same_tree(reference, merged)
+    with pytest.raises(SimulationError, match="2 scene\\(s\\) in none of the shards"):
+        run(_cfg(tmp_path / "half", f"merge=[{tmp_path}/shard0]"))
+
+
 def test_parallel_render_leaves_the_callers_thread_settings(tmp_path, monkeypatch):
     # the workers run single-threaded; a caller that trains next must keep all its threads
     for key in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):

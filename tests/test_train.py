@@ -56,6 +56,28 @@ def test_train_writes_checkpoints_metrics_and_tensorboard(trained):
     assert ckpt["hyper_parameters"]["views"] == ["right", "down", "left", "up"]
 
 
+@pytest.mark.parametrize("logger", ["csv", "mlflow"])
+def test_each_logger_gets_the_curves_and_the_hparams(logger, tiny_dataset, tmp_path):
+    """(TensorBoard's, the default's: the test above and tests/test_reliability.py.) The CSV
+    log comes with every logger preset."""
+    out = tmp_path / "run"
+    overrides = tiny_overrides(tiny_dataset, out, f"logger={logger}", f"paths.root_dir={tmp_path}")
+    metrics = train(compose_config("train", overrides))
+    hparams = (out / "csv" / "hparams.yaml").read_text()
+    assert "views: right,down,left,up" in hparams and "loss/alpha" in hparams
+    rows = list(csv.DictReader((out / "csv" / "metrics.csv").open()))
+    assert any(r.get("val/mae_mm") for r in rows)
+    assert not (out / "tensorboard").exists()
+    if logger == "mlflow":
+        from mlflow.tracking import MlflowClient
+
+        client = MlflowClient(tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}")
+        (run,) = client.search_runs([client.get_experiment_by_name("odmv").experiment_id])
+        assert run.data.params["views"] == "right,down,left,up"
+        assert run.data.metrics["test/mae_mm"] == pytest.approx(metrics["test/mae_mm"])
+        assert "val/mae_mm" in run.data.metrics
+
+
 @pytest.mark.parametrize("model", ["odmvnet", "mtlnet"])
 def test_quarter_turn_augmentation_trains_a_one_view_net(tiny_dataset, tmp_path, model):
     # views=1 with the reference and MTLNet's phase targets: every per-view array is turned

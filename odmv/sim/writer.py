@@ -342,8 +342,14 @@ class SimReport:
     images: int
 
 
-def simulate(s: SimSettings, workers: int | None = None, progress: bool = True) -> SimReport:
-    """Render every missing scene of the dataset described by ``s`` (resumable)."""
+def simulate(
+    s: SimSettings,
+    workers: int | None = None,
+    progress: bool = True,
+    shard: tuple[int, int] | None = None,
+) -> SimReport:
+    """Render every missing scene of the dataset described by ``s`` (resumable); with
+    ``shard=(i, n)`` only scenes i, i + n, i + 2n, ... (odmv.sim.shards joins the shards)."""
     s.views = check_views(s.views)
     if s.images not in ("full", "training"):
         raise SimulationError(f"images={s.images!r}: use 'full' or 'training'")
@@ -360,8 +366,9 @@ def simulate(s: SimSettings, workers: int | None = None, progress: bool = True) 
     elif s.out.exists() and any(s.out.iterdir()):
         raise SimulationError(f"{s.out}: folder exists, is not empty and has no {MANIFEST}")
     scenes_dir = s.out / "scenes"
-    todo = [i for i in range(s.scenes) if not (scenes_dir / scene_id(i)).is_dir()]
-    skipped = s.scenes - len(todo)
+    mine = range(s.scenes) if shard is None else range(shard[0], s.scenes, shard[1])
+    todo = [i for i in mine if not (scenes_dir / scene_id(i)).is_dir()]
+    skipped = len(mine) - len(todo)
     need = scene_bytes_bound(s) * len(todo)
     big = need > BIG_JOB_BYTES
     if todo:
@@ -371,8 +378,9 @@ def simulate(s: SimSettings, workers: int | None = None, progress: bool = True) 
     specs = {i: draw_scene_spec(s, i, cache) for i in todo}
     workers = max(1, min(workers or os.cpu_count() or 1, len(todo) or 1))
     scenes_dir.mkdir(parents=True, exist_ok=True)
-    for stale in scenes_dir.glob(f"{PARTIAL_PREFIX}*"):
-        shutil.rmtree(stale)  # left by an interrupted run
+    for i in mine:  # left by an interrupted run (another shard's are not this run's)
+        for stale in scenes_dir.glob(f"{PARTIAL_PREFIX}{scene_id(i)}-*"):
+            shutil.rmtree(stale)
     manifest.write()
     t0 = time.perf_counter()
     if big and len(todo) > 1:  # time one scene, then say how long the rest will take
@@ -400,7 +408,7 @@ def simulate(s: SimSettings, workers: int | None = None, progress: bool = True) 
                 for _ in pool.map(_worker, [(s, i, specs[i]) for i in todo]):
                     bar.advance(task)
     seconds = time.perf_counter() - t0
-    rendered = s.scenes - skipped
+    rendered = len(mine) - skipped
     per_scene = len(manifest.fringe_files(scene_id(0)))
     return SimReport(rendered, skipped, seconds, per_scene * rendered)
 
