@@ -59,12 +59,29 @@ def quiet_lightning() -> None:
     warnings.filterwarnings("ignore", message=r"The number of training batches .* logging interval")
 
 
+def tool(name: str) -> str:
+    """A command that runs this environment's console script ``name`` as printed, venv
+    activated or not: its path beside the interpreter (relative under the current folder)."""
+    path = Path(sys.executable).parent / name
+    if not path.is_file():
+        return name
+    try:
+        return str(path.relative_to(Path.cwd()))
+    except ValueError:
+        return str(path)
+
+
 def remove_if_empty(folder: Path | None) -> None:
     """Delete a run folder that holds nothing but what every run writes at its start."""
     if folder is None or not folder.is_dir():
         return
     if all(p.name in _STARTUP_FILES for p in folder.iterdir()):
         shutil.rmtree(folder, ignore_errors=True)
+        here = Path.cwd().resolve()
+        for parent in folder.resolve().parents:  # outputs/<task>/ left empty by it
+            if parent == here or here not in parent.parents or any(parent.iterdir()):
+                break
+            parent.rmdir()
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
-from odmv.cli import run_app
+from odmv.cli import run_app, tool
 from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.evaluate import evaluate, report
 from odmv.train import train
@@ -38,7 +38,7 @@ def main(argv: list[str]) -> int:
     print("\n" + report(em))
     print(f"the model's MAE is {ratio:.1f}x smaller than the constant predictor's")
     print(f"wall time: {minutes:.1f} min")
-    print(f"TensorBoard: tensorboard --logdir {out / 'tensorboard'}")
+    print(f"TensorBoard: {tool('tensorboard')} --logdir {out / 'tensorboard'}")
     print(f"figures    : {out / 'evaluation' / 'figures'}")
     return 0
 

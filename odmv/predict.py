@@ -172,16 +172,55 @@ def network_images(scene: Scene, predictor, reader: ImageReader, rig: Rig, have=
         return images
     if scene.manifest is not None:
         m = scene.manifest
-        spec = SampleSpec(
-            tuple(predictor.views),
-            *predictor.size,
-            m.fringe.resolve_frequency(m.fringe.train_frequency),
-            m.fringe.train_step,
-        )
+        frequency, step = matching_fringe(scene, predictor)
+        spec = SampleSpec(tuple(predictor.views), *predictor.size, frequency, step)
         images = np.array(load_scene(m, scene.name, spec)["fringes"], np.float32)
         images[[v not in have for v in predictor.views]] = 0  # views= left them out
         return images
     return reader.read(scene.folder, predictor.views, predictor.size)
+
+
+def matching_fringe(scene: Scene, predictor) -> tuple[int, int]:
+    """The (frequency, step) of a dataset scene whose image is the one the checkpoint was
+    trained on: the manifest's training image, or with full sequences the one of the
+    checkpoint's period and step; a scene that has none, or lacks a view, is refused."""
+    m, spec = scene.manifest, predictor.input_spec
+    lost = [v for v in predictor.views if v not in m.views]
+    if lost:
+        raise DataError(
+            f"{scene.folder}: no view {', '.join(lost)} in its dataset (it has "
+            f"{', '.join(m.views)}); the checkpoint takes {', '.join(predictor.views)}"
+        )
+    frequency = m.fringe.resolve_frequency(m.fringe.train_frequency)
+    period, step = spec.get("period_px"), spec.get("step")
+    if period is None or m.extra.get("fringe_period_known") is False:
+        return frequency, m.fringe.train_step  # nothing to compare (an import)
+    periods = list(m.fringe.periods_px)
+    if abs(periods[frequency] - period) < 1e-6 and m.fringe.train_step == step:
+        return frequency, step
+    if m.images == "full" and step < m.fringe.steps:
+        for f, p in enumerate(periods):
+            if abs(p - period) < 1e-6:
+                return f, step
+    raise DataError(
+        f"{scene.folder}: its network image is the {periods[frequency]:g} px fringe (period in "
+        f"projector px) at step {m.fringe.train_step}; the checkpoint was trained on the "
+        f"{period:g} px fringe at step {step} of {spec.get('n_steps')}: use a dataset rendered "
+        f"with that fringe (fringe.periods_px, fringe.train_frequency) or images=full"
+    )
+
+
+def expected_images(predictor) -> str:
+    """What a checkpoint takes from a capture, for folders of images (nothing to check them
+    against): each view's image of the fringe it was trained on."""
+    spec = predictor.input_spec
+    if spec.get("period_px") is None:
+        return f"the checkpoint takes one image per view: {', '.join(predictor.views)}"
+    return (
+        f"the checkpoint takes one image per view ({', '.join(predictor.views)}) of the "
+        f"{spec['period_px']:g} px fringe (period in projector px) at phase step {spec['step']} "
+        f"of {spec['n_steps']}, as it was trained; other fringes give wrong depth"
+    )
 
 
 def lit_by_any_view(images: np.ndarray, period_camera_px: float, threshold: float) -> np.ndarray:
@@ -252,6 +291,8 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
     if missing and predictor is not None:
         raise ValueError(f"calibration: no projector {missing[0]!r}, which the net needs")
     reader = ImageReader(cfg.scale, cfg.fit)
+    if predictor is not None and any(sc.manifest is None for sc in scenes):
+        print(expected_images(predictor), flush=True)
     out_root = Path(cfg.out or cfg.paths.output_dir)
     results = []
     t0 = time.perf_counter()
@@ -328,6 +369,12 @@ def read_sequences(scene: Scene, reader: ImageReader, cfg, rig) -> Sequences:
     ``psp.*`` (the periods from ``manifest=`` when ``psp.periods`` is not given)."""
     m = scene.manifest
     if m is not None:
+        if m.images != "full":
+            raise DataError(
+                f"{scene.folder}: method=psp decodes each projector's full sequences, and this "
+                "dataset holds the network's images only (images=training); render it with "
+                "images=full"
+            )
         spec = check_spec(m, m.views, [m.height_px, m.width_px], None, None, with_stacks=True)
         stack = load_scene(m, scene.name, spec)["fringe_stack"]
         h, w = stack.shape[-2:]

@@ -8,6 +8,7 @@ with the run's overrides) into the run folder; multiruns also collect every job 
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import hydra
@@ -24,12 +25,14 @@ from odmv.cli import (
     run_app,
     set_threads,
     task_overrides,
+    tool,
 )
 from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.ema import WeightEMA
-from odmv.io.atomic import write_json
-from odmv.io.runfolder import METRICS
+from odmv.io.atomic import write_json, write_text
+from odmv.io.runfolder import CONFIG, METRICS
 from odmv.module import FPPModule
+from odmv.pace import CpuPace, heavy_on_cpu
 from odmv.provenance import provenance
 from odmv.sweep import append_row
 
@@ -83,6 +86,8 @@ def build(cfg: DictConfig):
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()]
     if cfg.get("ema") is not None:
         callbacks.append(WeightEMA(cfg.ema))
+    if heavy_on_cpu(cfg, str(cfg.trainer.get("accelerator", "auto"))):
+        callbacks.append(CpuPace(cfg))
     trainer = hydra.utils.instantiate(
         cfg.trainer, logger=loggers or False, callbacks=callbacks, plugins=[AtomicCheckpointIO()]
     )
@@ -139,6 +144,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
         rank_zero_print(f"continuing {run} from epoch {ckpt.get('epoch', 0) + 1}")
     out_dir = Path(cfg.paths.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    if not (out_dir / CONFIG).is_file():  # called without Hydra's app (the demo, scripts)
+        write_text(out_dir / CONFIG, OmegaConf.to_yaml(cfg))
     dm, module, trainer = build(cfg)
     if ckpt is not None:
         check_fits(cfg.ckpt_path, ckpt, module.hparams.net_cfg, list(dm.views))
@@ -209,11 +216,14 @@ class Metrics(dict):
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="train")
 def main(cfg: DictConfig) -> Metrics | JobFailed:
-    hydra_dir = Path(cfg.paths.output_dir)
+    from hydra.core.hydra_config import HydraConfig
+
+    hydra_dir = Path(HydraConfig.get().runtime.output_dir)
 
     def body() -> tuple[DictConfig, dict]:
         check_launch(cfg)
         run_cfg = resumed_config(cfg, task_overrides()) if cfg.get("resume") else cfg
+        adopt_hydra_files(hydra_dir, Path(run_cfg.paths.output_dir))
         return run_cfg, train(run_cfg)
 
     result = run_app(body, hydra_dir)
@@ -221,17 +231,28 @@ def main(cfg: DictConfig) -> Metrics | JobFailed:
         return result
     run_cfg, metrics = result
     out = Path(run_cfg.paths.output_dir)
-    if out.resolve() != hydra_dir.resolve():  # continued another run's folder
+    if out.resolve() != hydra_dir.resolve():  # paths.output_dir=DIR, or another run continued
         remove_if_empty(hydra_dir)
     rank_zero_print(f"run folder: {out}")
     if "tensorboard" in (run_cfg.get("logger") or {}):
-        rank_zero_print(f"  TensorBoard: tensorboard --logdir {out / 'tensorboard'}")
+        rank_zero_print(f"  TensorBoard: {tool('tensorboard')} --logdir {out / 'tensorboard'}")
     if metrics:
         rank_zero_print(
             "  test: "
             + ", ".join(f"{k}={v:.4f}" for k, v in metrics.items() if k.startswith("test/"))
         )
     return Metrics(metrics, run_cfg.get("optimized_metric"))
+
+
+def adopt_hydra_files(hydra_dir: Path, out: Path) -> None:
+    """A run written elsewhere than Hydra's folder (``paths.output_dir=DIR``) takes Hydra's
+    ``.hydra/`` (its config, which ``resume=DIR`` reads) unless it has its own (a resumed run);
+    the folder Hydra made is then removed when the run ends."""
+    source, target = hydra_dir / ".hydra", out / ".hydra"
+    if out.resolve() == hydra_dir.resolve() or not source.is_dir() or target.exists():
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    shutil.move(source, target)
 
 
 def check_launch(cfg: DictConfig) -> None:

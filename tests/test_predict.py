@@ -2,6 +2,8 @@
 resizing, valid-only point clouds, and the classical method on full sequences."""
 
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import OpenEXR
@@ -140,6 +142,24 @@ def test_classical_method_on_a_scene_and_on_loose_images(tiny_dataset, tmp_path)
         ["method=psp", f"input={loose}", f"out={tmp_path / 'b'}", f"manifest={tiny_dataset}"],
     )
     np.testing.assert_array_equal(read_channel(predict(cfg)[0]["depth"], "Z"), depth)
+
+
+def test_psp_on_a_dataset_without_sequences_says_what_it_needs(tmp_path):
+    """As a user runs it: one line naming the fix, and no folder left behind."""
+    from odmv.sim.writer import SimSettings, simulate
+
+    ds = tmp_path / "ds"
+    simulate(SimSettings(out=ds, scenes=1, height_px=32, width_px=32, images="training"),
+             workers=1, progress=False)  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-m", "odmv.predict", "method=psp", f"input={ds}/scenes/000000"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert done.returncode == 2
+    assert "holds the network's images only (images=training); render it with images=full" in (
+        done.stdout + done.stderr
+    )
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
 
 
 def test_bad_images_are_named(tmp_path):

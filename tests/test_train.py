@@ -3,6 +3,7 @@
 import csv
 import hashlib
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -15,6 +16,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from odmv.evaluate import evaluate, report
 from odmv.io.exr import read_channel, write_exr
+from odmv.io.manifest import FringeSpec
 from odmv.module import load_module
 from odmv.predict import predict
 from odmv.train import train
@@ -90,7 +92,7 @@ def test_quarter_turn_augmentation_trains_a_one_view_net(tiny_dataset, tmp_path,
 
 
 def test_resume_continues_from_the_saved_epoch(trained, tiny_dataset, tmp_path):
-    out, _ = trained
+    out = shutil.copytree(trained[0], tmp_path / "run")  # continued in place: the copy
     last = out / "checkpoints" / "last.ckpt"
     before = torch.load(last, weights_only=True)
     assert before["epoch"] == 0 and before["global_step"] == 2
@@ -101,9 +103,29 @@ def test_resume_continues_from_the_saved_epoch(trained, tiny_dataset, tmp_path):
         ),
     )
     train(cfg)
-    after = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)
+    after = torch.load(last, weights_only=True)
     assert after["epoch"] == 1 and after["global_step"] == 4  # one more epoch, not two
     assert after["lr_schedulers"][0]["last_epoch"] == before["lr_schedulers"][0]["last_epoch"] + 1
+
+
+def test_a_run_named_by_paths_output_dir_holds_its_config_and_resumes(tiny_dataset, tmp_path):
+    """The app, as a user types it: the run folder gets Hydra's .hydra/ (so resume=DIR works),
+    no .hydra-only folder is left under ./outputs, and the printed TensorBoard command runs."""
+    run = tmp_path / "myrun"
+    flags = [o for o in tiny_overrides(tiny_dataset, run) if not o.startswith("paths.")]
+    app = [sys.executable, "-m", "odmv.train"]
+    first = subprocess.run([*app, f"paths.output_dir={run}", *flags], cwd=tmp_path,
+                           capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert first.returncode == 0, first.stderr[-2000:]
+    assert (run / ".hydra" / "config.yaml").is_file() and not (tmp_path / "outputs").exists()
+    (command,) = [line.split()[1] for line in first.stdout.splitlines() if "TensorBoard:" in line]
+    assert Path(tmp_path, command).is_file() or Path(command).is_file()
+    again = subprocess.run([*app, f"resume={run}", "trainer.max_epochs=2"], cwd=tmp_path,
+                           capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert f"run folder: {run}" in again.stdout and not (tmp_path / "outputs").exists()
+    rows = list(csv.DictReader((run / "csv" / "metrics.csv").open()))
+    assert {r["epoch"] for r in rows if r.get("val/mae_mm")} == {"0", "1"}  # both epochs kept
 
 
 def test_weight_ema_is_validated_checkpointed_and_tested(tiny_dataset, tmp_path):
@@ -181,7 +203,7 @@ def _ply_count(path):
     return n
 
 
-def test_predict_scene_and_image_folder(trained, tiny_dataset, tmp_path):
+def test_predict_scene_and_image_folder(trained, tiny_dataset, tmp_path, capsys):
     _, metrics = trained
     scene = tiny_dataset / "scenes" / "000004"
     cfg = compose_config(
@@ -215,6 +237,28 @@ def test_predict_scene_and_image_folder(trained, tiny_dataset, tmp_path):
         ],
     )
     np.testing.assert_array_equal(read_channel(predict(cfg)[0]["depth"], "Z"), depth)
+    assert (
+        "the 30 px fringe (period in projector px) at phase step 0 of 12" in capsys.readouterr().out
+    )
+
+
+def test_predict_refuses_scenes_of_another_fringe(trained, tmp_path):
+    """The checkpoint learned the 30 px fringe; a dataset whose network image is the 240 px
+    one (and no full sequences to take the 30 px one from) is refused in one line."""
+    from odmv.sim.writer import SimSettings, simulate
+
+    other = tmp_path / "other"
+    fringe = FringeSpec(train_frequency=1)
+    simulate(SimSettings(out=other, scenes=1, height_px=32, width_px=32, images="training",
+                         fringe=fringe), workers=1, progress=False)  # fmt: skip
+    cfg = compose_config(
+        "predict",
+        [f"ckpt_path={trained[1]['best_checkpoint']}", f"input={other}/scenes/000000",
+         f"out={tmp_path / 'out'}"],
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="its network image is the 240 px fringe .* the "
+                       "checkpoint was trained on the 30 px fringe at step 0 of 12"):  # fmt: skip
+        predict(cfg)
 
 
 def test_multirun_writes_one_csv_with_failed_jobs_and_their_errors(tiny_dataset, tmp_path):

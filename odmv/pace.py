@@ -1,0 +1,55 @@
+"""A heavy training started on a CPU says so before it starts and, after its first step, how
+long the run will take here: the paper's protocol (480 px, 200 epochs, 113.7 M parameters) is
+made for a GPU, and experiment=quickstart or mini are the presets a CPU finishes."""
+
+from __future__ import annotations
+
+import time
+
+import lightning as L
+import torch
+
+from odmv.cli import rank_zero_print
+
+#: A CPU run at this many input pixels or more, or of a net this wide, is announced.
+HEAVY_PIXELS = 256 * 256
+HEAVY_WIDTH = 32
+
+
+class CpuPace(L.Callback):
+    """Says what is about to run when it is made (before any data is rendered or read), and the
+    measured pace after the first training step."""
+
+    def __init__(self, cfg) -> None:
+        self._t0: float | None = None
+        self._said = False
+        rank_zero_print(
+            f"on the CPU: {cfg.model.name} at {cfg.data.resolution} px for "
+            f"{cfg.trainer.max_epochs} epochs: a run of this size is meant for a GPU (about a "
+            "minute a step on a 2-core CPU at 480 px); experiment=quickstart (minutes) or "
+            "experiment=mini (under an hour a run) are the presets a CPU finishes"
+        )
+
+    def on_train_start(self, trainer, module) -> None:
+        self._t0 = time.perf_counter()
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx) -> None:
+        if self._said or self._t0 is None:
+            return
+        self._said = True
+        seconds = time.perf_counter() - self._t0
+        steps = trainer.estimated_stepping_batches
+        rank_zero_print(
+            f"the first step took {seconds:.1f} s here: {steps} steps take about "
+            f"{seconds * steps / 3600:.1f} h on this machine"
+        )
+
+
+def heavy_on_cpu(cfg, accelerator: str) -> bool:
+    """Whether a run is heavy for a CPU and will run on one."""
+    if accelerator not in ("cpu", "auto") or torch.cuda.is_available():
+        return False
+    res = cfg.data.resolution
+    h, w = (res, res) if isinstance(res, int) else tuple(res)
+    width = cfg.model.net.get("base_width") or 0
+    return h * w >= HEAVY_PIXELS or width >= HEAVY_WIDTH
