@@ -184,6 +184,25 @@ def _dates(runs: list[Run]) -> str:
     return span + (f" ({_runs(missing)} unrecorded)" if missing else "")
 
 
+def recorded_protocol(runs: list[Run]) -> str | None:
+    """The preset every trained run was trained with (``experiment=NAME`` in its recorded
+    overrides), or None where they differ or do not say."""
+    names = set()
+    for r in runs:
+        overrides = str(r.metrics.get("overrides", "")).split()
+        if not overrides or overrides[0].startswith("resume="):
+            continue  # the classical row (no training), or a run continued with its own config
+        found = [o.partition("=")[2] for o in overrides if o.startswith("experiment=")]
+        names.add(found[-1] if found else None)
+    return names.pop() if len(names) == 1 else None
+
+
+def _protocol_line(given: str | None, protocol: str | None) -> str:
+    if given:
+        return given
+    return f"{protocol} (from the runs' records)" if protocol else "not given"
+
+
 def _dataset_line(runs: list[Run]) -> str:
     """The runs' datasets by name, with the manifest fingerprints their records hold (never
     read from disk: a rebuilt report says what the records say, wherever it is rebuilt)."""
@@ -211,12 +230,14 @@ def write_report(
     if not runs:
         raise ReportError(f"{', '.join(map(str, folders))}: no finished run (metrics.json) found")
     out.mkdir(parents=True, exist_ok=True)
+    given = protocol
+    protocol = protocol or recorded_protocol(runs)
     tables = build_tables(runs, protocol)
     seconds = sum(float(r.metrics.get("train_seconds", 0)) for r in runs)
     lines = [
         "# odmv reproduction report",
         "",
-        f"- protocol: {protocol or 'not given'}",
+        f"- protocol: {_protocol_line(given, protocol)}",
         f"- dataset: {_dataset_line(runs)}",
         f"- commit: {_recorded(runs, 'commit')}",
         f"- machine: {_recorded(runs, 'machine')}",

@@ -139,3 +139,13 @@ def test_the_committed_mini_report_rebuilds_from_its_records_byte_for_byte(tmp_p
     results = Path(__file__).resolve().parents[1] / "experiments" / "results" / "mini"
     write_report([results / "runs"], tmp_path, protocol="mini")
     assert (tmp_path / "tables.md").read_text() == (results / "tables.md").read_text()
+
+
+def test_a_report_without_protocol_takes_it_from_the_records(tmp_path, monkeypatch):
+    """Run from another folder, the committed records name their preset (resumed runs and the
+    classical row, which do not, aside)."""
+    results = Path(__file__).resolve().parents[1] / "experiments" / "results" / "mini"
+    monkeypatch.chdir(tmp_path)
+    write_report([results / "runs"], tmp_path / "report")
+    header = (tmp_path / "report" / "tables.md").read_text().splitlines()[:4]
+    assert "- protocol: mini (from the runs' records)" in header
