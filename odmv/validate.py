@@ -119,6 +119,11 @@ def validate(root: str | Path, deep: bool = True, scene_ids: list[str] | None = 
     views = list(m.views)
     if not m.scenes:
         report.problems.append(f"{root / 'manifest.json'}: lists no scenes")
+    if m.images == "training" and m.fringe.uniform:
+        report.problems.append(
+            f"{root / 'manifest.json'}: fringe.uniform is true, but images=training stores no "
+            "uniform images; python -m odmv.simulate with the dataset's settings rewrites it"
+        )
     scenes = m.scenes if scene_ids is None else [s for s in m.scenes if s["id"] in scene_ids]
     report.scenes = len(scenes)
     for scene in scenes:

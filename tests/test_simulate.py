@@ -1,6 +1,7 @@
 """The simulate app end to end: files, determinism, resume after a kill, re-render, errors."""
 
 import filecmp
+import json
 import os
 import signal
 import subprocess
@@ -109,6 +110,17 @@ def test_training_mode_writes_only_the_network_image(tmp_path):
     names = sorted(p.name for p in (out / "scenes" / "000000" / "fringe").iterdir())
     assert names == sorted(f"{v}_f2_s00.exr" for v in ("right", "down", "left", "up"))
     assert validate(out).ok
+    # the manifest promises no uniform image it does not hold; one written so before (the
+    # simulator's old form) is refused by the validator and rewritten by the simulator
+    manifest = out / "manifest.json"
+    meta = json.loads(manifest.read_text())
+    assert meta["fringe"]["uniform"] is False
+    meta["fringe"]["uniform"] = True
+    manifest.write_text(json.dumps(meta, indent=1) + "\n")
+    (problem,) = validate(out).problems
+    assert "fringe.uniform is true, but images=training stores no uniform images" in problem
+    assert run(_cfg(out, "scenes=2", "images=training")) == 0
+    assert json.loads(manifest.read_text())["fringe"]["uniform"] is False and validate(out).ok
 
 
 def test_killed_run_resumes_to_the_same_result(tmp_path):

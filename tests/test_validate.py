@@ -21,7 +21,8 @@ VIEWS = ("right", "down", "left", "up")
 
 def _hand_made_dataset(root, n_scenes=2, size=16, images="full"):
     """A tiny dataset written by hand: flat plane, every projector lights the left half."""
-    fringe = FringeSpec(periods_px=(1920.0, 30.0), steps=3, uniform=True)
+    # the uniform image only where the full sequences are stored, as the contract says
+    fringe = FringeSpec(periods_px=(1920.0, 30.0), steps=3, uniform=images == "full")
     m = Manifest(
         root,
         size,

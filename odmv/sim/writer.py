@@ -13,7 +13,7 @@ import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -193,12 +193,24 @@ def _manifest_for(s: SimSettings) -> Manifest:
         height_px=s.height_px,
         width_px=s.width_px,
         views=s.views,
-        fringe=s.fringe,
+        # the sequence the rig projects; the uniform image only where the images are stored
+        fringe=s.fringe if s.images == "full" else replace(s.fringe, uniform=False),
         rig=s.rig,
         images=s.images,
         scenes=scenes,
         extra={"simulation": s.content_key()},
     )
+
+
+def without_phantom_uniform(m: Manifest) -> Manifest:
+    """A manifest of network images only (images=training) that claims uniform images, as the
+    simulator wrote them before it stopped doing so, with the claim dropped (and said); the
+    simulator then rewrites it so, the dataset otherwise unchanged."""
+    if m.images == "training" and m.fringe.uniform:
+        print(f"{m.root / MANIFEST}: fringe.uniform set to false (images=training stores no "
+              "uniform images)", flush=True)  # fmt: skip
+        m.fringe = replace(m.fringe, uniform=False)
+    return m
 
 
 def draw_scene_spec(s: SimSettings, index: int, mesh_cache: dict | None = None) -> dict:
@@ -357,7 +369,7 @@ def simulate(
         raise SimulationError(f"resolution {s.height_px}x{s.width_px}: use multiples of 16")
     manifest = _manifest_for(s)
     if (s.out / MANIFEST).exists():
-        old = load_manifest(s.out)
+        old = without_phantom_uniform(load_manifest(s.out))
         if old.to_json() != manifest.to_json():
             raise SimulationError(
                 f"{s.out / MANIFEST}: this folder holds a dataset made with other settings; "
