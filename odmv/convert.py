@@ -62,7 +62,7 @@ from odmv.io.manifest import (
     fringe_name,
 )
 from odmv.rig import VIEW_NAMES
-from odmv.sequences import PspOptions, check_conventions, count_steps, stems, views_in
+from odmv.sequences import PspOptions, count_steps, read_stack, views_in
 
 FORMATS = ("nguyen2020", "uhrnet", "fppmlbench", "folder", "sequences")
 INTENSITIES = ("auto", "as_is")
@@ -233,24 +233,10 @@ def sequences(src: Path, calibration=None, psp: PspOptions | None = None) -> Ite
     scenes, views = _sequence_scenes(src, calibration, psp)
     options, steps = psp, psp.steps
     projectors = [calibration.projectors()[v] for v in views]
-    n_f = len(options.frequencies)
     origin_steps = options.phase_origin_rad * steps / (2 * np.pi)
     first = int(np.round(options.shift_sign * -origin_steps)) % steps  # its shift nearest 0
     for label, scene in zip(_splits(len(scenes)), scenes, strict=True):
-        stack = []
-        for v in views:
-            images = []
-            for stem in stems(options, v, steps):
-                path = find_view_image(scene, stem)
-                if path is None:
-                    raise ConvertError(f"{scene}: no image {stem}.<ext> (psp.pattern)")
-                images.append(_scaled(read_image(path)))
-            shapes = {im.shape for im in images}
-            if len(shapes) != 1:
-                raise ConvertError(f"{scene}: {v}'s images differ in size {sorted(shapes)}")
-            stack.append(np.stack(images).reshape(n_f, steps, *images[0].shape))
-            check_conventions(stack[-1], options, f"{scene}: {v}")
-        stack = np.stack(stack)
+        stack = np.stack([read_stack(scene, options, v, steps, _read_sequence) for v in views])
         h, w = stack.shape[-2:]
         depth = reconstruct_scene(stack, calibration.camera_at(w, h), projectors, options)
         lit = {}
@@ -259,6 +245,20 @@ def sequences(src: Path, calibration=None, psp: PspOptions | None = None) -> Ite
             lit[v] = np.logical_and.reduce([b >= options.min_modulation for b in modulation])
         inputs = {v: view_stack[-1, first] for v, view_stack in zip(views, stack, strict=True)}
         yield label, inputs, depth.astype(np.float32), lit
+
+
+def _read_sequence(scene: Path, names: list[str]) -> np.ndarray:
+    """The images of ``names`` in ``scene`` (S, H, W), over their full scale."""
+    images = []
+    for stem in names:
+        path = find_view_image(scene, stem)
+        if path is None:
+            raise ConvertError(f"{scene}: no image {stem}.<ext> (psp.pattern)")
+        images.append(_scaled(read_image(path)))
+    shapes = {im.shape for im in images}
+    if len(shapes) != 1:
+        raise ConvertError(f"{scene}: {names[0]}... images differ in size {sorted(shapes)}")
+    return np.stack(images)
 
 
 def _sequence_scenes(src: Path, calibration, psp: PspOptions) -> tuple[list[Path], list[str]]:

@@ -46,7 +46,7 @@ from odmv.io.manifest import (
 )
 from odmv.io.pointcloud import point_cloud, write_ply
 from odmv.rig import VIEW_NAMES, Camera, Rig
-from odmv.sequences import PspOptions, check_conventions, count_steps, stems, views_in
+from odmv.sequences import PspOptions, count_steps, read_stack, views_in
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -402,11 +402,11 @@ def read_sequences(scene: Scene, reader: ImageReader, cfg, rig) -> Sequences:
             "sequences; name it with views=[NAME]"
         )
     steps = count_steps(scene.folder, options, views[0])
-    images = [reader.read(scene.folder, stems(options, v, steps), None) for v in views]
-    n_f = len(options.frequencies)
-    stack = np.stack([im.reshape(n_f, steps, *im.shape[-2:]) for im in images])
-    for view, view_stack in zip(views, stack, strict=True):
-        check_conventions(view_stack, options, f"{scene.folder}: {view}")
+
+    def read(folder, names):
+        return reader.read(folder, names, None)
+
+    stack = np.stack([read_stack(scene.folder, options, v, steps, read) for v in views])
     return Sequences(stack, views, options)
 
 

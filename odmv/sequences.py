@@ -147,6 +147,15 @@ def stems(options: PspOptions, view: str, steps: int) -> list[str]:
     ]
 
 
+def read_stack(folder: Path, options: PspOptions, view: str, steps: int, read) -> np.ndarray:
+    """One projector's sequences in ``folder`` (F, N, H, W), ``read(folder, stems)`` giving
+    their images (S, H, W) in linear intensity; refused when they decode to wrong orders."""
+    images = read(folder, stems(options, view, steps))
+    stack = images.reshape(len(options.frequencies), steps, *images.shape[-2:])
+    check_conventions(stack, options, f"{folder}: {view}")
+    return stack
+
+
 def check_conventions(stack: np.ndarray, options: PspOptions, where: str) -> None:
     """Refuse one projector's sequences (F, N, H, W) that the options decode to wrong fringe
     orders on most modulated pixels, naming the conventions under which they agree. Needs two
