@@ -100,11 +100,12 @@ def test_group_norm_switch_replaces_every_batch_norm():
     import torch.nn as nn
 
     from odmv.models import UHRNet
+    from odmv.models.blocks import GroupNorm
 
     nets = (ODMVNet(base_width=4, blocks=1, norm="group"), UHRNet(1, 8, 0.0, norm="group"))
     for net in nets:
         kinds = {type(m) for m in net.modules()}
-        assert nn.GroupNorm in kinds
+        assert GroupNorm in kinds
         assert not any(issubclass(k, nn.modules.batchnorm._BatchNorm) for k in kinds)
         net.train()  # BatchNorm would mix the batch here; GroupNorm's statistics are per sample
         x = torch.randn(2, 4 if isinstance(net, ODMVNet) else 1, 32, 32)

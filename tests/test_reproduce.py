@@ -59,6 +59,27 @@ def test_every_baseline_head_stays_float32_under_autocast():
             assert net(torch.randn(1, 1, 32, 32))["depth"].dtype == torch.float32, cls
 
 
+def test_group_norm_runs_in_float32_under_bf16_autocast():
+    """set_norm's GroupNorm: in float32 the plain layer's values; under bf16 autocast it
+    normalizes the bf16 volume in float32 (the layer bf16 training keeps in float32)."""
+    from odmv.models.blocks import GroupNorm, set_norm
+
+    torch.manual_seed(0)
+    plain = torch.nn.GroupNorm(8, 16)  # set_norm: up to 8 groups
+    torch.nn.init.normal_(plain.weight)
+    torch.nn.init.normal_(plain.bias)
+    net = set_norm(torch.nn.Sequential(torch.nn.BatchNorm3d(16)), "group")
+    assert type(net[0]) is GroupNorm
+    net[0].load_state_dict(plain.state_dict())
+    x = torch.randn(2, 16, 4, 8, 8).contiguous(memory_format=torch.channels_last_3d)
+    assert torch.equal(net[0](x), plain(x))
+    low = x.bfloat16()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        y = net[0](low)
+    assert y.dtype == torch.float32
+    torch.testing.assert_close(y, plain(low.float()), rtol=0, atol=0)
+
+
 def test_subsets_of_a_box_scene():
     """A 4 mm box on the base plane: its shadows are `shadowed`, the image corners outside every
     projector's footprint are `unlit`, the box top (lit by all four) is neither."""

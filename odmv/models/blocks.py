@@ -71,6 +71,19 @@ def _groups(channels: int, most: int = 8) -> int:
     return max(g for g in range(1, most + 1) if channels % g == 0)
 
 
+class GroupNorm(nn.GroupNorm):
+    """GroupNorm computed in float32 under autocast. On a CPU its bfloat16 backward over a
+    channels-last volume runs 3.5x slower than the float32 one, which cost bf16-mixed
+    training all the convolutions gained (docs/performance.md); in float32 it is the plain
+    layer, the same values."""
+
+    def forward(self, x):
+        if x.dtype == torch.float32:
+            return super().forward(x)
+        with torch.autocast(x.device.type, enabled=False):
+            return super().forward(x.float())
+
+
 def set_norm(net: nn.Module, norm: str) -> nn.Module:
     """``norm="group"`` replaces every BatchNorm in ``net`` by a GroupNorm (up to 8 groups) with
     the same affine parameters: per-sample statistics, so training and evaluation normalize
@@ -82,7 +95,7 @@ def set_norm(net: nn.Module, norm: str) -> nn.Module:
         return net
     for name, child in net.named_children():
         if isinstance(child, nn.modules.batchnorm._BatchNorm):
-            setattr(net, name, nn.GroupNorm(_groups(child.num_features), child.num_features))
+            setattr(net, name, GroupNorm(_groups(child.num_features), child.num_features))
         else:
             set_norm(child, norm)
     return net
