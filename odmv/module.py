@@ -17,6 +17,7 @@ import lightning as L
 import numpy as np
 import torch
 from lightning.pytorch.loggers import TensorBoardLogger
+from lightning.pytorch.plugins.precision import MixedPrecision
 from lightning.pytorch.utilities import rank_zero_only
 
 from odmv.checkpoint import CheckpointError, check_weights, read_checkpoint
@@ -199,6 +200,21 @@ class FPPModule(L.LightningModule):
         sch_cfg = dict(self.hparams.scheduler or {"T_0": 10})
         sched = torch.optim.lr_scheduler.CosineAnnealingWarmRestarts(opt, **sch_cfg)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
+
+    def configure_gradient_clipping(
+        self, optimizer, gradient_clip_val=None, gradient_clip_algorithm=None
+    ):
+        plugin = self.trainer.precision_plugin
+        if gradient_clip_val and isinstance(plugin, MixedPrecision) and plugin.scaler is None:
+            # bf16-mixed scales no gradient, so clipping before a fused Adam step is right;
+            # Lightning's plugin refuses every fused optimizer, as float16's scaler needs it to
+            params = list(plugin.main_params(optimizer))
+            if gradient_clip_algorithm == "value":
+                torch.nn.utils.clip_grad_value_(params, gradient_clip_val)
+            else:
+                torch.nn.utils.clip_grad_norm_(params, gradient_clip_val)
+            return
+        super().configure_gradient_clipping(optimizer, gradient_clip_val, gradient_clip_algorithm)
 
     # ---------------------------------------------------------------- TensorBoard
     @rank_zero_only

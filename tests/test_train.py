@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import lightning as L
 import numpy as np
 import pytest
 import torch
@@ -309,6 +310,31 @@ def test_threads_pins_torch_threads_for_the_run(tiny_dataset, tmp_path):
             train(compose_config("train", tiny_overrides(tiny_dataset, tmp_path, "threads=0")))
     finally:
         torch.set_num_threads(before)
+
+
+class GradNorms(L.Callback):
+    """The gradients' total norm as the optimizer used them (clipped, not yet zeroed)."""
+
+    seen: list[float] = []
+
+    def on_train_batch_end(self, trainer, module, *args):
+        grads = [p.grad for p in module.parameters() if p.grad is not None]
+        GradNorms.seen.append(float(torch.nn.utils.get_total_norm(grads)))
+
+
+def test_bf16_mixed_trains_with_fused_adam_and_clipped_gradients(tiny_dataset, tmp_path):
+    """The presets' fused Adam and gradient clipping under bf16-mixed, where Lightning's
+    mixed-precision plugin refuses every fused optimizer: the step runs, clipped."""
+    GradNorms.seen = []
+    overrides = [
+        "trainer.precision=bf16-mixed",
+        "optimizer.fused=true",
+        "trainer.gradient_clip_val=0.001",
+        "+callbacks.grad_norms._target_=test_train.GradNorms",
+    ]
+    metrics = train(compose_config("train", tiny_overrides(tiny_dataset, tmp_path, *overrides)))
+    assert np.isfinite(metrics["test/mae_mm"])
+    assert len(GradNorms.seen) == 2 and max(GradNorms.seen) <= 0.001 * 1.0001
 
 
 @pytest.mark.slow
