@@ -63,3 +63,27 @@ def test_robustness_scores_runs_and_the_classical_method_on_shifted_twins(traine
     assert f"{scores['gamma:2.2']['test/mae_mm']:.3f} ({ratio:.2f}x)" in md
     assert "% covered" in md and (tmp_path / "robustness.png").is_file()
     assert len((tmp_path / "robustness.csv").read_text().splitlines()) == 1 + 2 * 3
+
+
+def test_robustness_rows_keep_randomized_and_dropout_trainings_apart(trained, tmp_path):
+    """A net trained on the randomized twin or with view dropout is a row of its own, not a
+    further seed of the nominal net."""
+    import json
+
+    from omegaconf import OmegaConf
+
+    from odmv.study import robustness
+
+    run, metrics = trained
+    cfg = OmegaConf.load(run / ".hydra" / "config.yaml")
+    labels = []
+    for name, randomize, dropout in (("a", None, None), ("b", "all", None), ("c", None, 0.25)):
+        folder = tmp_path / name
+        (folder / ".hydra").mkdir(parents=True)
+        OmegaConf.update(cfg, "data.randomize", randomize, force_add=True)
+        OmegaConf.update(cfg, "view_dropout", dropout, force_add=True)
+        OmegaConf.save(cfg, folder / ".hydra" / "config.yaml")
+        labels.append(robustness._label(folder, json.loads((run / "metrics.json").read_text())))
+    assert labels[0] == robustness._label(run, metrics)
+    assert labels[1] == labels[0] + ", randomize=all"
+    assert labels[2] == labels[0] + ", view_dropout=0.25"

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import matplotlib
 import numpy as np
+from omegaconf import OmegaConf
 
 from odmv.io.atomic import write_atomic, write_csv, write_json, write_text
 from odmv.sim.shifts import NOMINAL_SHIFT, Shift, parse_shift
@@ -113,10 +114,20 @@ def score_classical(
 
 
 def _label(run: Path, metrics: dict) -> str:
+    """The row a run belongs to: its net, view count and width, and the training settings
+    that make a robustness row of their own (a randomized twin, view dropout)."""
     views = len(metrics.get("views") or [])
     name = f"{metrics.get('model')} S={views}"
     if metrics.get("model") == "odmvnet" and metrics.get("width"):
         name += f" w{metrics['width']}"
+    config = run / ".hydra" / "config.yaml"
+    cfg = OmegaConf.load(config) if config.is_file() else OmegaConf.create()
+    randomize = OmegaConf.select(cfg, "data.randomize", default=None)
+    dropout = OmegaConf.select(cfg, "view_dropout", default=None)
+    if randomize:
+        name += f", randomize={randomize}"
+    if dropout:
+        name += f", view_dropout={dropout}"
     return name
 
 
