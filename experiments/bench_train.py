@@ -10,12 +10,22 @@ the preset's shapes.
 Prints the median step time over --steps steps after --warmup steps, samples/s, and peak
 memory (CUDA: max allocated; CPU: peak RSS of this process). Any training override goes after
 --set, e.g. --set views=2 data.resolution=256 model.net.activation_checkpointing=true.
+
+On a shared 2-core machine runs of one configuration differ by up to 40 %, so compare
+configurations alternated, each in a fresh process, in ABBA order:
+
+    python experiments/bench_train.py --preset mini --rounds 3 \
+        --variants "--precision 32" "--precision bf16-mixed"
 """
 
 from __future__ import annotations
 
 import argparse
+import re
+import shlex
 import statistics
+import subprocess
+import sys
 import time
 
 import torch
@@ -58,7 +68,17 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=10)
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--set", nargs="*", default=[], help="more training overrides")
+    ap.add_argument(
+        "--variants",
+        nargs="+",
+        default=None,
+        help="compare these argument sets (each a quoted string added to the others)",
+    )
+    ap.add_argument("--rounds", type=int, default=3, help="with --variants: ABBA rounds")
     args = ap.parse_args()
+    if args.variants:
+        compare(args.variants, args.rounds)
+        return
     quiet_lightning()  # the deprecation notes Lightning and torch.export raise
 
     overrides = list(args.set)
@@ -127,6 +147,35 @@ def main() -> None:
         f"{args.steps} steps after {args.warmup}), {batch_size / median:.2f} samples/s, "
         f"{peak_memory(device)}"
     )
+
+
+def compare(variants: list[str], rounds: int) -> None:
+    """Each variant ``rounds`` times in a fresh process, the order reversed every other round
+    (ABBA), with this call's other arguments; then the median step of each variant's runs."""
+    base, argv = [], iter(sys.argv[1:])
+    for a in argv:
+        if a == "--rounds":
+            next(argv)
+        elif a != "--variants" and a not in variants:
+            base.append(a)
+    steps: dict[str, list[float]] = {v: [] for v in variants}
+    for r in range(rounds):
+        for v in variants if r % 2 == 0 else variants[::-1]:
+            cmd = [sys.executable, __file__, *base, *shlex.split(v)]
+            out = subprocess.run(cmd, capture_output=True, text=True)
+            if out.returncode:
+                lines = out.stderr.strip().splitlines()
+                errors = [x for x in lines if re.match(r"(\S+(Error|Exception): |error)", x)]
+                why = (errors or lines or [f"exit {out.returncode}"])[-1]
+                raise SystemExit(f"error: {shlex.join(cmd)}: {why}")
+            ms = float(out.stdout.split("step ")[1].split(" ms")[0])
+            steps[v].append(ms)
+            print(f"round {r + 1}: {v}: {ms:.1f} ms", flush=True)
+    for v, ms in steps.items():
+        print(
+            f"{v}: median {statistics.median(ms):.1f} ms over {len(ms)} runs "
+            f"({', '.join(f'{m:.1f}' for m in ms)})"
+        )
 
 
 if __name__ == "__main__":
