@@ -1,6 +1,8 @@
-"""Figures the docs quote about the presets, checked against the configs they describe, so the
-two cannot drift apart again."""
+"""Figures the docs quote, checked against what they describe so the two cannot drift apart: the
+presets' settings against the configs, the findings' results against the committed records."""
 
+import csv
+import json
 import re
 from pathlib import Path
 
@@ -40,3 +42,42 @@ def test_quoted_preset_figures_match_the_configs(doc, pattern, keys):
     assert found, f"{doc}: no text matching {pattern!r}"
     quoted = [int(v) for v in found.groups()]
     assert quoted == [preset(*overrides)[key] for overrides, key in keys], doc
+
+
+def _recorded_numbers() -> list[float]:
+    """The figures findings.md may quote: the MAEs of the reports' run lists, and every number
+    of the reports and the lab notebook."""
+    results = ROOT / "experiments" / "results"
+    found = []
+    for runs in results.rglob("runs.csv"):
+        for row in csv.DictReader(runs.open()):
+            found += [float(v) for k, v in row.items() if "mae" in k and v]
+    for doc in ("mini/tables.md", "robustness/robustness.md", "accuracy/notebook.md"):
+        found += [float(x) for x in re.findall(r"\d+\.\d+", (results / doc).read_text())]
+    for record in results.glob("**/runs/*/*.json"):
+        found += _maes(json.loads(record.read_text()))
+    return found
+
+
+def _maes(tree) -> list[float]:
+    """The MAE values of a record (metrics by name, nested per shift in robustness.json)."""
+    if not isinstance(tree, dict):
+        return []
+    found = [v for k, v in tree.items() if "mae" in k and isinstance(v, float)]
+    return found + [x for v in tree.values() for x in _maes(v)]
+
+
+def test_findings_quote_recorded_figures():
+    """docs/findings.md quotes MAEs at the report's precision (4 decimals) and ratios to the
+    nominal MAE (N.NNx); each must be a figure of the committed records, so the page cannot
+    drift from the results it summarizes."""
+    text = (ROOT / "docs" / "findings.md").read_text()
+    recorded = _recorded_numbers()
+    quoted = re.findall(r"(?<![\d.])(\d+\.\d{4})(?!\d)", text)
+    quoted += re.findall(r"(?<![\d.])(\d+\.\d{2})x", text)
+    assert len(quoted) > 40, "findings.md should quote its figures"
+    missing = [
+        q for q in quoted
+        if not any(round(v, len(q.split(".")[1])) == float(q) for v in recorded)
+    ]  # fmt: skip
+    assert not missing, f"docs/findings.md quotes figures no record holds: {missing}"
