@@ -1,6 +1,7 @@
 """Per-layer convolution times of a preset's net: every 2D and 3D convolution of one training
-forward (transposed ones not included), replayed alone at its real shapes, memory format and precision (forward and both
-backward passes), with its achieved GFLOP/s; layers of the same shape are timed once.
+forward (transposed ones not included), replayed alone at its real shapes, memory format and
+precision (forward and both backward passes), with its achieved GFLOP/s; layers of the same
+shape are timed once.
 
     python experiments/bench_convs.py --preset mini --model odmvnet
     python experiments/bench_convs.py --preset mini --model odmvnet --precision bf16 --im2col

@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import pytest
+from helpers import compose_config, tiny_overrides
 
 from odmv.study import VERBS
 from odmv.study.__main__ import main
@@ -87,3 +88,44 @@ def test_robustness_rows_keep_randomized_and_dropout_trainings_apart(trained, tm
     assert labels[0] == robustness._label(run, metrics)
     assert labels[1] == labels[0] + ", randomize=all"
     assert labels[2] == labels[0] + ", view_dropout=0.25"
+
+
+def test_robustness_declares_views_missing_to_a_view_dropout_net(trained, tiny_dataset, tmp_path):
+    """A net trained with view dropout is scored with each view declared missing; the report
+    puts it beside the same net without dropout and the three-view net, under the view that
+    one lacks. A net trained without dropout is never told a view is missing."""
+    from odmv.sim.shifts import Shift
+    from odmv.study import robustness
+    from odmv.train import train
+
+    base_run, _ = trained
+    run = tmp_path / "dropout"
+    extra = ["view_dropout=0.5", "views=4", "reference=true"]
+    train(compose_config("train", tiny_overrides(tiny_dataset, run, *extra)))
+    shifts = [Shift("dead_view", "down")]
+    scores = robustness.score_run(run, shifts, scenes=3, threads=1, missing=("down", "up"))
+    assert list(scores) == ["nominal", "dead_view:down", "missing:down", "missing:up"]
+    declared, dark = scores["missing:down"]["test/mae_mm"], scores["dead_view:down"]["test/mae_mm"]
+    assert declared > 0 and declared != scores["nominal"]["test/mae_mm"] and declared != dark
+    assert scores["missing:down"]["dataset"] == scores["nominal"]["dataset"]  # the nominal twin
+    base = robustness.score_run(base_run, shifts, scenes=3, threads=1, missing=("down",))
+    assert "missing:down" not in base
+    three = {"nominal": {"test/mae_mm": 0.5}}  # a three-view net's score, for the table
+    rows = {
+        "odmvnet S=4": [base],
+        "odmvnet S=4, view_dropout=0.5": [scores],
+        "odmvnet S=3": [three],
+    }
+    views = {"odmvnet S=3": ["right", "left", "up"]}
+    md = robustness.write_tables(rows, shifts, tmp_path / "report", views).read_text()
+    table = md.split("## Any set of working projectors")[1]
+    lines = {
+        line.split(" | ")[0][2:]: line for line in table.splitlines() if line.startswith("| odmv")
+    }
+    cells = lines["odmvnet S=4, view_dropout=0.5"].split(" | ")[2:7]  # all, missing r d l u
+    assert cells == [f"{scores['nominal']['test/mae_mm']:.3f}", "–", f"{declared:.3f}", "–",
+                     f"{scores['missing:up']['test/mae_mm']:.3f}"]  # fmt: skip
+    assert lines["odmvnet S=3"].split(" | ")[2:5] == ["–", "–", "0.500"]  # under `down`
+    assert "against 0.5000 mm for odmvnet S=3" in table
+    csv = (tmp_path / "report" / "robustness.csv").read_text()
+    assert "missing:up" in csv and "missing:up" not in md.split("## Any set")[0]

@@ -95,9 +95,12 @@ def source_seed(source: Path) -> int:
         raise HeldoutError(f"{source / MANIFEST}: no simulation record ({e})") from None
 
 
-def evaluate_on(run: Path, data: Path, threads: int | None, what: str) -> dict:
+def evaluate_on(
+    run: Path, data: Path, threads: int | None, what: str, extra: tuple[str, ...] = ()
+) -> dict:
     """Test metrics of ``run``'s best checkpoint on dataset ``data`` (``python -m
-    odmv.evaluate`` in a clean process; ``what`` names the scoring in errors)."""
+    odmv.evaluate`` in a clean process, with the overrides ``extra``; ``what`` names the
+    scoring in errors)."""
     ckpt, _ = best_checkpoint(run)
     if not ckpt.is_file():
         raise HeldoutError(f"{run}: its best checkpoint {ckpt.name} is gone; it cannot be scored")
@@ -113,6 +116,7 @@ def evaluate_on(run: Path, data: Path, threads: int | None, what: str) -> dict:
         "progress=false",
         *([f"threads={threads}"] if threads else []),
         f"hydra.run.dir={scratch}",
+        *extra,
     ]
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if proc.returncode != 0 or not (scratch / METRICS).is_file():

@@ -1,7 +1,7 @@
 """Score finished runs and the classical method on shifted twins of their dataset.
 
     python -m odmv.study robustness RUN [RUN ...] [--shifts gamma:1.5 gamma:2.2 ...]
-        [--scenes 100] [--classical] [--threads 2] [--out DIR]
+        [--missing right down left up] [--scenes 100] [--classical] [--threads 2] [--out DIR]
 
 Each shift (odmv.sim.shifts, ``NAME:STRENGTH``) renders once, beside the runs' dataset, a
 test-only twin of it under that shift: its rig, fringes, renderer and scene mix, ``scenes``
@@ -13,6 +13,13 @@ set, kept: a later call scores only what is missing), the classical method (phas
 the nominal calibration) too with ``--classical``, and ``--out`` gets ``robustness.md``,
 ``robustness.csv`` and ``robustness.png``: MAE per model and set, and its ratio to the model's
 nominal MAE.
+
+A run trained with view dropout is also scored with each view of ``--missing`` declared
+missing (``missing:VIEW``: the nominal twin, that view's images withheld and the net told so),
+which a dead projector becomes once the user knows it; the report then compares it with the
+same net trained without dropout (all views present) and with the net trained on three views
+(its view count's ``S=3`` row; by the rig's quarter-turn symmetry it stands for any one
+missing).
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from odmv.io.atomic import write_atomic, write_csv, write_json, write_text
+from odmv.rig import VIEW_NAMES
 from odmv.sim.shifts import NOMINAL_SHIFT, Shift, parse_shift
 from odmv.study.heldout import evaluate_on, source_seed, twin_dataset
 from odmv.study.records import METRICS, ROBUSTNESS
@@ -60,6 +68,8 @@ SHIFTS = (
     "gloss:1.5",
     "dead_view:right",
     "dead_view:down",
+    "dead_view:left",
+    "dead_view:up",
 )
 
 
@@ -73,19 +83,32 @@ def shifted_set(source: Path, shift: Shift, scenes: int = SCENES) -> Path:
 
 
 def score_run(
-    run: Path, shifts: list[Shift], scenes: int = SCENES, threads: int | None = None
+    run: Path,
+    shifts: list[Shift],
+    scenes: int = SCENES,
+    threads: int | None = None,
+    missing: tuple[str, ...] = VIEW_NAMES,
 ) -> dict:
-    """``run``'s scores on the nominal and every shifted twin of its dataset, kept in
-    ``run/robustness.json`` (each set scored once; the file grows as sets are added)."""
+    """``run``'s scores on the nominal and every shifted twin of its dataset, and, if it was
+    trained with view dropout, on the nominal twin with each of its views in ``missing``
+    declared missing; kept in ``run/robustness.json`` (each set scored once; the file grows
+    as sets are added)."""
     path = run / ROBUSTNESS
     scores = json.loads(path.read_text()) if path.is_file() else {}
-    source = Path(json.loads((run / METRICS).read_text())["dataset"])
-    for shift in [NOMINAL_SHIFT, *shifts]:
-        label = shift.label()
+    record = json.loads((run / METRICS).read_text())
+    source = Path(record["dataset"])
+    sets = [(shift.label(), shift, ()) for shift in [NOMINAL_SHIFT, *shifts]]
+    if _setting(run, "view_dropout"):
+        sets += [
+            (f"missing:{v}", NOMINAL_SHIFT, (f"missing=[{v}]",))
+            for v in missing
+            if v in (record.get("views") or [])
+        ]
+    for label, shift, extra in sets:
         if label in scores and scores[label].get("scenes") == scenes:
             continue
         data = shifted_set(source, shift, scenes)
-        metrics = evaluate_on(run, data, threads, "robustness")
+        metrics = evaluate_on(run, data, threads, "robustness", extra)
         scores[label] = {k: v for k, v in metrics.items() if k.startswith("test/")} | {
             "scenes": scenes,
             "dataset": metrics["dataset"],
@@ -120,10 +143,7 @@ def _label(run: Path, metrics: dict) -> str:
     name = f"{metrics.get('model')} S={views}"
     if metrics.get("model") == "odmvnet" and metrics.get("width"):
         name += f" w{metrics['width']}"
-    config = run / ".hydra" / "config.yaml"
-    cfg = OmegaConf.load(config) if config.is_file() else OmegaConf.create()
-    randomize = OmegaConf.select(cfg, "data.randomize", default=None)
-    dropout = OmegaConf.select(cfg, "view_dropout", default=None)
+    randomize, dropout = _setting(run, "data.randomize"), _setting(run, "view_dropout")
     if randomize:
         name += f", randomize={randomize}"
     if dropout:
@@ -131,10 +151,24 @@ def _label(run: Path, metrics: dict) -> str:
     return name
 
 
-def write_tables(rows: dict[str, list[dict]], shifts: list[Shift], out: Path) -> Path:
+def _setting(run: Path, key: str):
+    """A training setting of ``run`` (its Hydra config; None where unset or unrecorded)."""
+    config = run / ".hydra" / "config.yaml"
+    cfg = OmegaConf.load(config) if config.is_file() else OmegaConf.create()
+    return OmegaConf.select(cfg, key, default=None)
+
+
+def write_tables(
+    rows: dict[str, list[dict]],
+    shifts: list[Shift],
+    out: Path,
+    views: dict[str, list[str]] | None = None,
+) -> Path:
     """``robustness.md``, ``robustness.csv`` and ``robustness.png`` of the rows (model label ->
-    each seed's scores by set label)."""
+    each seed's scores by set label; ``views``: each row's views, for the view-dropout table)."""
     labels = ["nominal", *[s.label() for s in shifts]]
+    shown = len(labels)  # the missing views' sets go to the CSV and the view-dropout table
+    labels += [f"missing:{v}" for v in VIEW_NAMES if _any(rows, f"missing:{v}")]
     table, csv_rows = [], []
     for model, seeds in rows.items():
         line = [model, str(len(seeds))]
@@ -159,15 +193,99 @@ def write_tables(rows: dict[str, list[dict]], shifts: list[Shift], out: Path) ->
         "classical method's MAE is over the pixels it reconstructs (their share: covered).",
         "",
     ]
-    for start in range(0, len(labels), 8):  # at most eight sets per table: readable widths
-        cols = labels[start : start + 8]
+    for start in range(0, shown, 8):  # at most eight sets per table: readable widths
+        cols = labels[start : min(start + 8, shown)]
         md.append("| model | seeds | " + " | ".join(cols) + " |")
         md.append("|---|---:|" + "---:|" * len(cols))
-        md += ["| " + " | ".join(r[:2] + r[2 + start : 2 + start + 8]) + " |" for r in table]
+        md += [
+            "| " + " | ".join(r[:2] + r[2 + start : 2 + start + len(cols)]) + " |" for r in table
+        ]
         md.append("")
+    md += _dropout_table(rows, views or {})
     write_csv(out / "robustness.csv", csv_rows)
     _figure(rows, shifts, out / "robustness.png")
     return write_text(out / "robustness.md", "\n".join(md) + "\n")
+
+
+def _any(rows: dict[str, list[dict]], label: str) -> bool:
+    return any(label in seed for seeds in rows.values() for seed in seeds)
+
+
+def _dropout_table(rows: dict[str, list[dict]], views: dict[str, list[str]]) -> list[str]:
+    """Each view-dropout row beside its references: the same net trained without dropout
+    (every view present) and the three-view net (S=3), under the view it lacks."""
+    dropout = [m for m in rows if ", view_dropout=" in m and _any({m: rows[m]}, "nominal")]
+    if not dropout:
+        return []
+    md = [
+        "## Any set of working projectors",
+        "",
+        "MAE (mm) on the nominal twin: with every view, with one view declared missing (its "
+        "images withheld, the net told), and with one dead but not declared (its images "
+        "ambient only). Beside each net trained with view dropout: the same net trained "
+        "without it, and the net trained on three views, under the view it does not have.",
+        "",
+        "| model | seeds | all views | "
+        + " | ".join(f"missing {v}" for v in VIEW_NAMES)
+        + " | "
+        + " | ".join(f"dead {v}" for v in VIEW_NAMES)
+        + " |",
+        "|---|---:|" + "---:|" * (1 + 2 * len(VIEW_NAMES)),
+    ]
+    verdicts = []
+    for model in dropout:
+        base = model.split(", view_dropout=")[0]
+        three = base.replace("S=4", "S=3")
+        for name in [model] + [m for m in (base, three) if m in rows]:
+            seeds = rows[name]
+            cells = [_cell(seeds, "nominal")]
+            lacks = [v for v in VIEW_NAMES if v not in views.get(name, VIEW_NAMES)]
+            for v in VIEW_NAMES:
+                cells.append(
+                    _cell(seeds, "nominal") if v in lacks else _cell(seeds, f"missing:{v}")
+                )
+            cells += [_cell(seeds, f"dead_view:{v}") for v in VIEW_NAMES]
+            if lacks:
+                cells[0] = "–"
+            md.append(f"| {name} | {len(seeds)} | " + " | ".join(cells) + " |")
+        verdicts += _dropout_verdicts(model, rows, base, three, views)
+    return md + [""] + verdicts + ([""] if verdicts else [])
+
+
+def _dropout_verdicts(model, rows, base, three, views) -> list[str]:
+    """One line each: the dropout net with every view against the net without dropout, and
+    with its worst missing view against the three-view net."""
+    seeds, lines = rows[model], []
+    full = _mean(seeds, "nominal")
+    if base in rows:
+        ref = _mean(rows[base], "nominal")
+        lines.append(
+            f"- {model}, every view: {full:.4f} mm against {ref:.4f} mm for {base} "
+            f"({100 * (full / ref - 1):+.1f} %)."
+        )
+    gone = {v: _mean(seeds, f"missing:{v}") for v in VIEW_NAMES}
+    gone = {v: m for v, m in gone.items() if np.isfinite(m)}
+    if three in rows and gone:
+        lacks = [v for v in VIEW_NAMES if v not in views.get(three, VIEW_NAMES)]
+        ref = _mean(rows[three], "nominal")
+        worst = max(gone, key=gone.get)
+        line = f"- {model}, one view missing: "
+        if lacks and lacks[0] in gone:
+            line += (
+                f"{lacks[0]} {gone[lacks[0]]:.4f} mm against {ref:.4f} mm for {three}, which "
+                f"lacks it ({100 * (gone[lacks[0]] / ref - 1):+.1f} %); "
+            )
+        line += (
+            f"the worst, {worst}, {gone[worst]:.4f} mm ({100 * (gone[worst] / ref - 1):+.1f} % "
+            f"against {three})."
+        )
+        lines.append(line)
+    return lines
+
+
+def _cell(seeds: list[dict], label: str) -> str:
+    mae = _mean(seeds, label)
+    return f"{mae:.3f}" if np.isfinite(mae) else "–"
 
 
 def _mean(seeds: list[dict], label: str, key: str = "test/mae_mm") -> float:
@@ -214,6 +332,13 @@ def main(argv: list[str]) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("runs", nargs="+", help="globs of finished run folders")
     ap.add_argument("--shifts", nargs="+", default=list(SHIFTS), metavar="NAME:STRENGTH")
+    ap.add_argument(
+        "--missing",
+        nargs="*",
+        default=list(VIEW_NAMES),
+        metavar="VIEW",
+        help="views declared missing, one at a time, for nets trained with view dropout",
+    )
     ap.add_argument("--scenes", type=int, default=SCENES)
     ap.add_argument("--classical", action="store_true", help="score the classical method too")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
@@ -225,14 +350,20 @@ def main(argv: list[str]) -> None:
     )
     if not runs:
         raise SystemExit(f"error: no finished runs match {args.runs}")
+    unknown = sorted(set(args.missing) - set(VIEW_NAMES))
+    if unknown:
+        raise SystemExit(f"error: --missing {unknown[0]}: no such view; name {VIEW_NAMES}")
     rows: dict[str, list[dict]] = {}
+    views: dict[str, list[str]] = {}
     for run in runs:
         metrics = json.loads((run / METRICS).read_text())
-        rows.setdefault(_label(run, metrics), []).append(
-            score_run(run, shifts, args.scenes, args.threads)
+        label = _label(run, metrics)
+        views[label] = list(metrics.get("views") or [])
+        rows.setdefault(label, []).append(
+            score_run(run, shifts, args.scenes, args.threads, tuple(args.missing))
         )
     if args.classical:
         source = Path(json.loads((runs[0] / METRICS).read_text())["dataset"])
         rows["classical (nominal calibration)"] = [score_classical(source, shifts, args.scenes)]
     if args.out:
-        print(f"report: {write_tables(rows, shifts, args.out)}")
+        print(f"report: {write_tables(rows, shifts, args.out, views)}")
