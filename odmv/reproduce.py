@@ -282,6 +282,7 @@ def keep(folder: Path, record: Path) -> bool:
     if not finished(folder):
         return False
     metrics = (folder / METRICS).read_text()
+    _merge_robustness(folder, record)
     if trained_key(record) == trained_key(folder) and all(
         _text(record / name) == _text(folder / name) for name in (METRICS, HELDOUT, ROBUSTNESS)
     ):
@@ -307,6 +308,19 @@ def keep(folder: Path, record: Path) -> bool:
         record.parent.mkdir(parents=True, exist_ok=True)
         tmp.rename(record)
     return True
+
+
+def _merge_robustness(folder: Path, record: Path) -> None:
+    """Robustness scores of the same training result (the same ``metrics.json``) that only
+    the record holds (``odmv.study robustness`` scores a committed record in place) are added
+    to the run folder's, so keeping the run never drops them."""
+    kept, own = record / ROBUSTNESS, folder / ROBUSTNESS
+    if not kept.is_file() or _text(record / METRICS) != _text(folder / METRICS):
+        return
+    scores = json.loads(own.read_text()) if own.is_file() else {}
+    extra = {k: v for k, v in json.loads(kept.read_text()).items() if k not in scores}
+    if extra:
+        write_json(own, scores | extra)
 
 
 def _text(path: Path) -> str | None:

@@ -432,3 +432,24 @@ def _reproduce_cfg(overrides, runs, out):
             "records": str(out / "runs"),
         }
     )
+
+
+def test_keeping_a_run_keeps_the_robustness_scores_its_record_gained(tmp_path):
+    """`odmv.study robustness` scores a committed record in place; keeping the same run again
+    must not drop those scores, while a record of another training result is replaced whole."""
+    from odmv.reproduce import keep
+
+    folder, record = tmp_path / "run", tmp_path / "record"
+    folder.mkdir()
+    (folder / "metrics.json").write_text('{"test/mae_mm": 0.2}\n')
+    (folder / "robustness.json").write_text(json.dumps({"nominal": {"test/mae_mm": 0.2}}))
+    assert keep(folder, record)
+    scores = {"nominal": {"test/mae_mm": 0.2}, "dead_view:up": {"test/mae_mm": 0.3}}
+    (record / "robustness.json").write_text(json.dumps(scores))  # the study, on the record
+    keep(folder, record)
+    for where in (record, folder):
+        assert json.loads((where / "robustness.json").read_text()) == scores
+    (folder / "metrics.json").write_text('{"test/mae_mm": 0.25}\n')  # trained again
+    (folder / "robustness.json").write_text(json.dumps({"nominal": {"test/mae_mm": 0.25}}))
+    assert keep(folder, record)
+    assert list(json.loads((record / "robustness.json").read_text())) == ["nominal"]
