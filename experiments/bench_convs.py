@@ -17,13 +17,12 @@ from __future__ import annotations
 import argparse
 import collections
 import statistics
-import time
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from odmv.bench import PRESETS, build_module, preset_config, synthetic_batch
+from odmv.bench import PRESETS, build_module, measure, preset_config, synthetic_batch
 from odmv.cli import quiet_lightning
 from odmv.models.blocks import _ReachableTaps, reachable_taps
 from odmv.module import net_input
@@ -93,14 +92,7 @@ def im2col_conv3d(x, w, padding, dilation):
 
 
 def median_ms(fn, reps: int) -> float:
-    for _ in range(2):
-        fn()
-    times = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times) * 1e3
+    return statistics.median(measure(fn, reps, 2, torch.device("cpu"))) * 1e3
 
 
 def main() -> None:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import tempfile
-import time
 from functools import partial
 from pathlib import Path
 
@@ -24,27 +23,14 @@ from odmv.bench import (
     PRESETS,
     build_module,
     input_size,
+    measure,
     percentile,
     preset_config,
-    sync,
     synthetic_batch,
 )
 from odmv.cli import quiet_lightning
 from odmv.export import DepthInMM, export_graph
 from odmv.module import net_input
-
-
-def _measure(run, repeats: int, warmup: int, device: torch.device) -> list[float]:
-    for _ in range(warmup):
-        run()
-    sync(device)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        run()
-        sync(device)
-        times.append(time.perf_counter() - t0)
-    return times
 
 
 def _onnx_session(model: torch.nn.Module, example: torch.Tensor, device: torch.device):
@@ -100,12 +86,12 @@ def main() -> None:
         x = net_input(synthetic_batch(cfg, batch, device))
         for name, fn in runners.items():
             _report(
-                name, batch, _measure(_torch_call(fn, x, dtype), args.repeats, args.warmup, device)
+                name, batch, measure(_torch_call(fn, x, dtype), args.repeats, args.warmup, device)
             )
         if session is not None:
             feed = {"inputs": x.cpu().numpy().astype(np.float32)}
             call = partial(session.run, None, feed)
-            _report(f"onnx ({provider})", batch, _measure(call, args.repeats, args.warmup, device))
+            _report(f"onnx ({provider})", batch, measure(call, args.repeats, args.warmup, device))
 
 
 def _torch_call(fn, x: torch.Tensor, dtype):

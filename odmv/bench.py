@@ -1,10 +1,11 @@
-"""What the benchmark scripts (experiments/bench_train.py, bench_infer.py) share: a net built
-from a preset's config exactly as training builds it, and a synthetic batch of the real shapes
-(random values: speed and memory do not depend on them)."""
+"""What the benchmark scripts (experiments/bench_train.py, bench_infer.py, bench_convs.py) share:
+a net built from a preset's config exactly as training builds it, a synthetic batch of the real
+shapes (random values: speed and memory do not depend on them), and the timing loop."""
 
 from __future__ import annotations
 
 import resource
+import time
 
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -84,6 +85,20 @@ def peak_memory(device: torch.device) -> str:
 def sync(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
+
+
+def measure(run, repeats: int, warmup: int, device: torch.device) -> list[float]:
+    """Seconds of each of ``repeats`` calls of ``run`` after ``warmup`` untimed ones."""
+    for _ in range(warmup):
+        run()
+    sync(device)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        run()
+        sync(device)
+        times.append(time.perf_counter() - t0)
+    return times
 
 
 def percentile(values: list[float], q: float) -> float:

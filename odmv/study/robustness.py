@@ -214,7 +214,7 @@ def _any(rows: dict[str, list[dict]], label: str) -> bool:
 def _dropout_table(rows: dict[str, list[dict]], views: dict[str, list[str]]) -> list[str]:
     """Each view-dropout row beside its references: the same net trained without dropout
     (every view present) and the three-view net (S=3), under the view it lacks."""
-    dropout = [m for m in rows if ", view_dropout=" in m and _any({m: rows[m]}, "nominal")]
+    dropout = [m for m in rows if ", view_dropout=" in m and any("nominal" in s for s in rows[m])]
     if not dropout:
         return []
     md = [
@@ -239,7 +239,7 @@ def _dropout_table(rows: dict[str, list[dict]], views: dict[str, list[str]]) -> 
         for name in [model] + [m for m in (base, three) if m in rows]:
             seeds = rows[name]
             cells = [_cell(seeds, "nominal")]
-            lacks = [v for v in VIEW_NAMES if v not in views.get(name, VIEW_NAMES)]
+            lacks = _lacks(views, name)
             for v in VIEW_NAMES:
                 cells.append(
                     _cell(seeds, "nominal") if v in lacks else _cell(seeds, f"missing:{v}")
@@ -266,7 +266,7 @@ def _dropout_verdicts(model, rows, base, three, views) -> list[str]:
     gone = {v: _mean(seeds, f"missing:{v}") for v in VIEW_NAMES}
     gone = {v: m for v, m in gone.items() if np.isfinite(m)}
     if three in rows and gone:
-        lacks = [v for v in VIEW_NAMES if v not in views.get(three, VIEW_NAMES)]
+        lacks = _lacks(views, three)
         ref = _mean(rows[three], "nominal")
         worst = max(gone, key=gone.get)
         line = f"- {model}, one view missing: "
@@ -281,6 +281,11 @@ def _dropout_verdicts(model, rows, base, three, views) -> list[str]:
         )
         lines.append(line)
     return lines
+
+
+def _lacks(views: dict[str, list[str]], row: str) -> list[str]:
+    """The rig's views a row's net was not trained on (none where its views are unknown)."""
+    return [v for v in VIEW_NAMES if v not in views.get(row, VIEW_NAMES)]
 
 
 def _cell(seeds: list[dict], label: str) -> str:
