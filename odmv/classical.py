@@ -11,6 +11,7 @@ pixels that is reconstructed.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +19,7 @@ import torch
 
 from odmv.data.dataset import DataError, check_spec, load_scene, split_scenes
 from odmv.data.subsets import MASKS
-from odmv.fpp import fuse_views, period_in_camera_px, reconstruct_view
+from odmv.fpp import decode_phase, fuse_views, period_in_camera_px, triangulate_depth
 from odmv.io.atomic import write_json
 from odmv.io.manifest import load_manifest
 from odmv.io.runfolder import METRICS
@@ -41,35 +42,78 @@ def twin_options(m) -> PspOptions:
     return PspOptions(periods=periods, steps=m.fringe.steps, min_modulation=MIN_MODULATION)
 
 
+@dataclass(frozen=True)
+class DecodedView:
+    """One projector's sequences decoded: the coordinate ``u`` along its phase axis, the period
+    of its finest frequency in the same unit (whether decoded or left out as aliased), the
+    modulation B of the finest sequence decoded (full-scale units) and the pixels kept."""
+
+    u: np.ndarray
+    period: float
+    modulation: np.ndarray
+    ok: np.ndarray
+
+    def phase_rad(self) -> np.ndarray:
+        """The unwrapped phase of the finest frequency (rad), NaN where rejected."""
+        return np.where(self.ok, 2 * np.pi * self.u / self.period, np.nan)
+
+
+def decode_views(stack: np.ndarray, options: PspOptions, camera=None, projectors=None):
+    """Full sequences (V, F, N, H, W; frequencies in the order of ``options.frequencies``) ->
+    one :class:`DecodedView` per view. With the rig (``camera`` and a list of ``projectors``):
+    ``u`` in projector px, from the sequences whose period the camera resolves (finer ones
+    alias); without: in projector widths, from every sequence."""
+    decoded = []
+    for i, view_stack in enumerate(stack):
+        if projectors is None:
+            periods = [1 / f for f in options.frequencies]
+            used = list(range(len(periods)))
+        else:
+            periods, used = _resolved(camera, projectors[i], options)
+        u, modulation, ok, _ = decode_phase(
+            view_stack[used],
+            [periods[k] for k in used],
+            options.min_modulation,
+            **options.conventions(),
+        )
+        decoded.append(DecodedView(u, min(periods), modulation, ok))
+    return decoded
+
+
+def _resolved(camera, proj, options: PspOptions) -> tuple[list[float], list[int]]:
+    """The periods of ``options``' frequencies in projector px and the indices of those the
+    camera resolves; refused when that leaves out the coarsest (nothing to unwrap from)."""
+    axis_px = proj.width_px if proj.phase_axis == "u" else proj.height_px
+    periods_px = [axis_px / p for p in options.frequencies]
+    used = [
+        i
+        for i, p in enumerate(periods_px)
+        if period_in_camera_px(p, camera, proj) >= MIN_PERIOD_CAMERA_PX
+    ]
+    if not used or max(periods_px[i] for i in used) < max(periods_px):
+        raise DataError(
+            f"classical: the camera does not resolve the coarsest fringes "
+            f"(periods {list(options.frequencies)} across the projector)"
+        )
+    return periods_px, used
+
+
+def fused_depth(decoded: list[DecodedView], camera, projectors) -> np.ndarray:
+    """Views decoded with the rig (:func:`decode_views`) -> depth (mm, NaN where rejected):
+    each view triangulated, then fused over the views that agree."""
+    depths = []
+    for view, proj in zip(decoded, projectors, strict=True):
+        depth = triangulate_depth(view.u, camera, proj)
+        depths.append(np.where(view.ok & np.isfinite(depth), depth, np.nan))
+    modulations = np.stack([view.modulation for view in decoded])
+    return fuse_views(np.stack(depths), modulations, TOLERANCE_MM, EDGE_MM)
+
+
 def reconstruct_scene(stack: np.ndarray, camera, projectors, options: PspOptions) -> np.ndarray:
     """Full sequences (V, F, N, H, W; frequencies in the order of ``options.frequencies``) of
     the projectors ``projectors`` (a list) -> depth (mm, NaN where rejected), using the
     sequences whose period the camera resolves."""
-    depths, mods = [], []
-    for view_stack, proj in zip(stack, projectors, strict=True):
-        axis_px = proj.width_px if proj.phase_axis == "u" else proj.height_px
-        periods_px = [axis_px / p for p in options.frequencies]
-        used = [
-            i
-            for i, p in enumerate(periods_px)
-            if period_in_camera_px(p, camera, proj) >= MIN_PERIOD_CAMERA_PX
-        ]
-        if not used or max(periods_px[i] for i in used) < max(periods_px):
-            raise DataError(
-                f"classical: the camera does not resolve the coarsest fringes "
-                f"(periods {list(options.frequencies)} across the projector)"
-            )
-        d, m = reconstruct_view(
-            view_stack[used],
-            [periods_px[i] for i in used],
-            camera,
-            proj,
-            options.min_modulation,
-            **options.conventions(),
-        )
-        depths.append(d)
-        mods.append(m)
-    return fuse_views(np.stack(depths), np.stack(mods), TOLERANCE_MM, EDGE_MM)
+    return fused_depth(decode_views(stack, options, camera, projectors), camera, projectors)
 
 
 def classical_row(

@@ -155,28 +155,6 @@ def period_in_camera_px(period_px: float, camera: Camera, projector: Projector) 
     return float(np.linalg.norm(uv[1] - uv[0]))
 
 
-def reconstruct_view(
-    stack: np.ndarray,
-    periods_px: list[float],
-    camera: Camera,
-    projector: Projector,
-    min_modulation: float,
-    **conventions,
-) -> tuple[np.ndarray, np.ndarray]:
-    """One projector's sequences (F, N, H, W; linear intensity) -> depth (mm, NaN where
-    rejected) and the modulation of the finest sequence. ``conventions``: ``shift_sign``,
-    ``phase_origin_rad``, ``unwrap`` of :func:`decode_phase`.
-
-    Rejected: modulation below ``min_modulation`` in any sequence (unlit, shadowed, or a mixed
-    pixel whose surfaces cancel), and pixels where consecutive unwrapping levels disagree by more
-    than a quarter of the finer period (a wrong fringe order, typical of mixed pixels at edges).
-    """
-    u, modulation, ok, _ = decode_phase(stack, periods_px, min_modulation, **conventions)
-    depth = triangulate_depth(u, camera, projector)
-    ok &= np.isfinite(depth)
-    return np.where(ok, depth, np.nan), modulation
-
-
 def _nanmedian(a: np.ndarray) -> np.ndarray:
     """Median over axis 0 ignoring NaN; NaN (without a warning) where all are NaN."""
     with warnings.catch_warnings():

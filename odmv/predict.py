@@ -28,11 +28,11 @@ from omegaconf import DictConfig
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
 from odmv.calibration import load_calibration
-from odmv.classical import reconstruct_scene, twin_options
+from odmv.classical import decode_views, fused_depth, twin_options
 from odmv.cli import run_app
 from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.data.dataset import DataError, SampleSpec, check_spec, load_scene
-from odmv.fpp import decode_phase, period_in_camera_px
+from odmv.fpp import period_in_camera_px
 from odmv.inference import load_predictor
 from odmv.io.atomic import write_atomic, write_npy
 from odmv.io.exr import write_exr
@@ -315,7 +315,11 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
             else:
                 rig = scene.manifest.rig if scene.manifest else default_rig
                 seq = read_sequences(scene, reader, cfg, rig)
-                phases = write_phases(out, seq)
+                h, w = seq.stack.shape[-2:]
+                cam = rig.camera_at(w, h) if rig is not None else None
+                projectors = [rig.projectors()[v] for v in seq.views] if rig is not None else None
+                decoded = decode_views(seq.stack, seq.options, cam, projectors)
+                phases = write_phases(out, seq.views, decoded, seq.options)
                 if rig is None:
                     print(
                         f"{scene.name}: wrote the phase of views {', '.join(seq.views)}; depth "
@@ -325,7 +329,8 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
                     results.append({"phase": phases[0], "files": phases})
                     bar.advance(task)
                     continue
-                depth, images, period = classical_depth(seq, rig)
+                depth = fused_depth(decoded, cam, projectors).astype(np.float32)
+                images, period = seq.stack[:, -1, 0], finest_period_px(seq, projectors[0])
                 used = seq.views
             h, w = depth.shape
             quantity = predictor.input_spec.get("quantity", "depth") if predictor else "depth"
@@ -410,18 +415,15 @@ def read_sequences(scene: Scene, reader: ImageReader, cfg, rig) -> Sequences:
     return Sequences(stack, views, options)
 
 
-def write_phases(out: Path, seq: Sequences) -> list[Path]:
+def write_phases(out: Path, views: list[str], decoded: list, options: PspOptions) -> list[Path]:
     """Per view: ``<view>_phase.exr`` and ``.npy`` (the finest frequency's unwrapped phase,
-    rad, NaN where rejected) and ``<view>_modulation.exr`` (its fringe amplitude B, full-scale
-    units)."""
-    options, written = seq.options, []
-    periods = [1 / p for p in options.frequencies]  # in projector widths
+    rad, NaN where rejected; with a calibration unwrapped from the sequences the camera resolves,
+    as the depth is) and ``<view>_modulation.exr`` (the fringe amplitude B of the finest
+    sequence decoded, full-scale units)."""
+    written = []
     out.mkdir(parents=True, exist_ok=True)
-    for view, stack in zip(seq.views, seq.stack, strict=True):
-        x, modulation, ok, _ = decode_phase(
-            stack, periods, options.min_modulation, **options.conventions()
-        )
-        phase = np.where(ok, 2 * np.pi * x / periods[-1], np.nan).astype(np.float32)
+    for view, d in zip(views, decoded, strict=True):
+        phase = d.phase_rad().astype(np.float32)
         what = {"unit": "rad", "odmv_quantity": "unwrapped phase of the finest frequency"}
         if options.unwrap == "spatial":
             what["odmv_quantity"] += " (spatially unwrapped: relative)"
@@ -431,23 +433,17 @@ def write_phases(out: Path, seq: Sequences) -> list[Path]:
         written.append(
             write_exr(
                 out / f"{view}_modulation.exr",
-                {"Y": modulation.astype(np.float32)},
+                {"Y": d.modulation.astype(np.float32)},
                 attributes=amplitude,
             )
         )
     return written
 
 
-def classical_depth(seq: Sequences, rig) -> tuple[np.ndarray, np.ndarray, float]:
-    """Phase shifting on every projector's sequences (odmv.classical.reconstruct_scene): depth
-    at the images' own size, the finest sequence's first images (for the lit mask) and its
-    period (projector px)."""
-    h, w = seq.stack.shape[-2:]
-    projectors = [rig.projectors()[v] for v in seq.views]
-    depth = reconstruct_scene(seq.stack, rig.camera_at(w, h), projectors, seq.options)
-    proj = projectors[0]
+def finest_period_px(seq: Sequences, proj) -> float:
+    """The finest sequence's period along ``proj``'s phase axis (projector px)."""
     axis_px = proj.width_px if proj.phase_axis == "u" else proj.height_px
-    return depth.astype(np.float32), seq.stack[:, -1, 0], axis_px / seq.options.frequencies[-1]
+    return axis_px / seq.options.frequencies[-1]
 
 
 def write_outputs(

@@ -9,6 +9,7 @@ import pytest
 from helpers import FRINGE, RIG, calibration_of, compose_config, render
 from PIL import Image as PILImage
 
+from odmv import fpp
 from odmv.data.dataset import DataError
 from odmv.io.exr import read_exr
 from odmv.io.manifest import fringe_name
@@ -130,8 +131,15 @@ def test_spatial_unwrapping_is_right_up_to_whole_coarse_periods(twin, tmp_path):
     assert np.mean(whole == np.median(whole)) > 0.9  # one offset for the big region
 
 
-def test_depth_with_a_calibration_matches_the_twin(twin, tmp_path):
-    """With the rig's calibration the same sequences give depth (mm) where the views agree."""
+def test_depth_with_a_calibration_matches_the_twin(twin, tmp_path, monkeypatch):
+    """With the rig's calibration the same sequences give depth (mm) where the views agree, and
+    each view is decoded once, from the sequences the camera resolves (at 128 px the 64-period
+    one aliases: 2.5 camera px a period), for its phase file and its depth alike."""
+    sequences_read = []
+    wrapped = fpp.wrapped_phase
+    monkeypatch.setattr(
+        fpp, "wrapped_phase", lambda *a, **k: sequences_read.append(1) or wrapped(*a, **k)
+    )
     write_sequences(twin, tmp_path / "in", ["right", "left"], -1, 3, "{view}_f{f}_s{s:02d}", 0)
     (tmp_path / "rig.json").write_text(json.dumps(calibration_of(RIG, (128, 128))))
     (done,) = decode(
@@ -145,6 +153,16 @@ def test_depth_with_a_calibration_matches_the_twin(twin, tmp_path):
     ok = np.isfinite(depth)
     assert ok.mean() > 0.5
     assert np.abs(depth - twin.depth_mm)[ok].mean() < 0.02
+    # per view: the two coarsest sequences for the conventions' check, then the two resolved
+    assert len(sequences_read) == 2 * (2 + 2)
+    for view in ("right", "left"):
+        phase = np.load(tmp_path / "out" / f"{view}_phase.npy")
+        coord_px = phase / (2 * np.pi) * FRINGE.periods_px[-1]
+        kept = np.isfinite(coord_px) & twin.lit[view] & np.isfinite(twin.projector_coord[view])
+        assert kept.sum() > 0.8 * twin.lit[view].sum()
+        # to 0.1 px (0.06 measured), the 8-period sequence's precision: the 64-period one that
+        # gives 0.05 px without a calibration is not used
+        assert np.median(np.abs(coord_px - twin.projector_coord[view])[kept]) < 0.1
 
 
 def test_bad_options_are_named():
