@@ -283,8 +283,10 @@ def keep(folder: Path, record: Path) -> bool:
         return False
     metrics = (folder / METRICS).read_text()
     _merge_robustness(folder, record)
-    if trained_key(record) == trained_key(folder) and all(
-        _text(record / name) == _text(folder / name) for name in (METRICS, HELDOUT, ROBUSTNESS)
+    if (
+        trained_key(record) == trained_key(folder)
+        and _text(record / METRICS) == metrics
+        and all(_text(record / name) == _text(folder / name) for name in (HELDOUT, ROBUSTNESS))
     ):
         return False
     tmp = record.with_name(f".{record.name}.tmp")

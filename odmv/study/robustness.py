@@ -25,6 +25,7 @@ missing).
 from __future__ import annotations
 
 import argparse
+import functools
 import glob
 import json
 from pathlib import Path
@@ -153,9 +154,13 @@ def _label(run: Path, metrics: dict) -> str:
 
 def _setting(run: Path, key: str):
     """A training setting of ``run`` (its Hydra config; None where unset or unrecorded)."""
+    return OmegaConf.select(_config(run), key, default=None)
+
+
+@functools.cache
+def _config(run: Path):
     config = run / ".hydra" / "config.yaml"
-    cfg = OmegaConf.load(config) if config.is_file() else OmegaConf.create()
-    return OmegaConf.select(cfg, key, default=None)
+    return OmegaConf.load(config) if config.is_file() else OmegaConf.create()
 
 
 def write_tables(
