@@ -330,7 +330,7 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
                     bar.advance(task)
                     continue
                 depth = fused_depth(decoded, cam, projectors).astype(np.float32)
-                images, period = seq.stack[:, -1, 0], finest_period_px(seq, projectors[0])
+                images, period = seq.stack[:, -1, 0], decoded[0].period  # projector px
                 used = seq.views
             h, w = depth.shape
             quantity = predictor.input_spec.get("quantity", "depth") if predictor else "depth"
@@ -438,12 +438,6 @@ def write_phases(out: Path, views: list[str], decoded: list, options: PspOptions
             )
         )
     return written
-
-
-def finest_period_px(seq: Sequences, proj) -> float:
-    """The finest sequence's period along ``proj``'s phase axis (projector px)."""
-    axis_px = proj.width_px if proj.phase_axis == "u" else proj.height_px
-    return axis_px / seq.options.frequencies[-1]
 
 
 def write_outputs(
