@@ -66,6 +66,45 @@ def test_robustness_scores_runs_and_the_classical_method_on_shifted_twins(traine
     assert len((tmp_path / "robustness.csv").read_text().splitlines()) == 1 + 2 * 3
 
 
+def test_datasets_that_differ_only_in_training_scenes_share_one_twin(
+    tiny_dataset, tmp_path, capsys
+):
+    """The held-out and shifted twins of a randomized or shifted training set are the nominal
+    set's twins: one folder, rendered once; another scene seed is another twin."""
+    import json
+
+    from odmv.io.manifest import MANIFEST
+    from odmv.sim.shifts import Shift
+    from odmv.study.heldout import heldout_dataset
+    from odmv.study.robustness import shifted_set
+
+    manifest = json.loads((tiny_dataset / MANIFEST).read_text())
+    sources = {}
+    for name, extra in (
+        ("nominal", {}),
+        ("randomized", {"randomize": {"gamma": [1.0, 2.2]}}),
+        ("shifted", {"shift": Shift("defocus", 1.5).to_dict()}),
+        ("other_seed", {"seed": manifest["simulation"]["seed"] + 5}),
+    ):
+        m = manifest | {"simulation": manifest["simulation"] | extra}
+        (tmp_path / name).mkdir()
+        (tmp_path / name / MANIFEST).write_text(json.dumps(m))
+        sources[name] = tmp_path / name
+    held = heldout_dataset(sources["nominal"], scenes=2)
+    assert "rendering" in capsys.readouterr().out
+    assert heldout_dataset(sources["randomized"], scenes=2) == held
+    assert heldout_dataset(sources["shifted"], scenes=2) == held
+    assert "rendering" not in capsys.readouterr().out
+    assert heldout_dataset(sources["other_seed"], scenes=2) != held
+    gamma = Shift("gamma", 2.2)
+    assert shifted_set(sources["randomized"], gamma, 2) == shifted_set(sources["nominal"], gamma, 2)
+    assert shifted_set(sources["nominal"], gamma, 2) not in (
+        held,
+        shifted_set(sources["nominal"], Shift("gamma", 1.5), 2),
+    )
+    assert json.loads((held / MANIFEST).read_text())["simulation"].get("randomize") is None
+
+
 def test_robustness_rows_keep_randomized_and_dropout_trainings_apart(trained, tmp_path):
     """A net trained on the randomized twin or with view dropout is a row of its own, not a
     further seed of the nominal net."""

@@ -22,6 +22,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from odmv.config import settings_hash
 from odmv.io.atomic import write_json
 from odmv.io.manifest import MANIFEST
 from odmv.sim.shifts import Shift
@@ -36,11 +37,13 @@ class HeldoutError(ValueError):
 
 
 def twin_dataset(
-    source: Path, out: Path, scenes: int, seed: int, images: str, shift: Shift | None = None
+    source: Path, name: str, scenes: int, seed: int, images: str, shift: Shift | None = None
 ) -> Path:
-    """Render (or finish) into ``out`` a test-only twin of dataset ``source``: its rig, fringes,
+    """Render (or finish) beside dataset ``source`` a test-only twin of it: its rig, fringes,
     renderer and scene mix, ``scenes`` scenes drawn from ``seed``, under ``shift`` (None: the
-    nominal twin); returns ``out``."""
+    nominal twin); returns its folder, ``name-KEY``. KEY hashes everything that sets the
+    twin's pixels, so datasets that differ only in their training scenes (randomized or
+    shifted) share one twin instead of rendering it again."""
     try:
         m = json.loads((source / MANIFEST).read_text())
     except (OSError, json.JSONDecodeError) as e:
@@ -52,20 +55,19 @@ def twin_dataset(
     # randomized training scenes carry over (a twin has test scenes only)
     sim.pop("shift", None)
     sim.pop("randomize", None)
-    settings = SimSettings.from_dict(
-        {
-            **sim,
-            "out": str(out),
-            "resolution": [m["image_size"]["height_px"], m["image_size"]["width_px"]],
-            "views": m["views"],
-            "fringe": m["fringe"],
-            "scenes": scenes,
-            "seed": seed,
-            "images": images,
-            "splits": {"train": 0, "val": 0, "test": 1},
-            **({"shift": shift.to_dict()} if shift is not None and not shift.nominal else {}),
-        }
-    )
+    spec = {
+        **sim,
+        "resolution": [m["image_size"]["height_px"], m["image_size"]["width_px"]],
+        "views": m["views"],
+        "fringe": m["fringe"],
+        "scenes": scenes,
+        "seed": seed,
+        "images": images,
+        "splits": {"train": 0, "val": 0, "test": 1},
+        **({"shift": shift.to_dict()} if shift is not None and not shift.nominal else {}),
+    }
+    out = source.parent / f"{name}-{settings_hash(spec | {'rig': m['rig']})}"
+    settings = SimSettings.from_dict(spec | {"out": str(out)})
     if not settings.complete():
         print(f"rendering {out} (once)", flush=True)
         simulate(settings, workers=1, progress=False)
@@ -83,8 +85,7 @@ def heldout_dataset(source: Path, scenes: int = SCENES) -> Path:
     """Render (or finish) the held-out twin of dataset ``source`` (``scenes`` scenes); returns
     its folder."""
     seed = source_seed(source) + 1
-    out = source.parent / f"heldout{scenes}-{source.name}-seed{seed}"
-    return twin_dataset(source, out, scenes, seed, "training")
+    return twin_dataset(source, f"heldout{scenes}-seed{seed}", scenes, seed, "training")
 
 
 def source_seed(source: Path) -> int:

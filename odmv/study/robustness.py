@@ -78,9 +78,8 @@ def shifted_set(source: Path, shift: Shift, scenes: int = SCENES) -> Path:
     """The shifted twin of dataset ``source`` (rendered on first use; full sequences, so the
     classical method can run on it too)."""
     seed = source_seed(source) + SEED_OFFSET
-    name = shift.label().replace(":", "_")
-    out = source.parent / f"robust{scenes}-{source.name}-seed{seed}-{name}"
-    return twin_dataset(source, out, scenes, seed, "full", shift)
+    name = f"robust{scenes}-seed{seed}-{shift.label().replace(':', '_')}"
+    return twin_dataset(source, name, scenes, seed, "full", shift)
 
 
 def score_run(
