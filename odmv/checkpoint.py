@@ -8,6 +8,7 @@ never reaches the user.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import torch
@@ -15,6 +16,7 @@ from lightning.fabric.utilities.types import _PATH
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
 from odmv.io.atomic import write_atomic
+from odmv.io.runfolder import METRICS
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):
@@ -56,6 +58,32 @@ def read_checkpoint(path: str | Path) -> dict:
 def _setting_differences(saved: dict, current: dict) -> list[str]:
     keys = [k for k in dict.fromkeys([*saved, *current]) if saved.get(k) != current.get(k)]
     return [f"{k} {saved.get(k)!r} (this run {current.get(k)!r})" for k in keys]
+
+
+def best_checkpoint(run: Path) -> tuple[Path, dict]:
+    """A finished run's best checkpoint (found beside it where the run folder was moved) and
+    its metrics.json."""
+    path = run / METRICS
+    if not path.is_file():
+        raise CheckpointError(f"{run}: no {METRICS} (not a finished run)")
+    metrics = json.loads(path.read_text())
+    ckpt = Path(metrics["best_checkpoint"])
+    if not ckpt.is_file():
+        ckpt = run / "checkpoints" / ckpt.name  # the run folder was moved
+    return ckpt, metrics
+
+
+def initial_weights(source: str | Path, current: dict) -> dict:
+    """The weights a run starts from (``init_from``): those of checkpoint ``source``, or of a
+    finished run folder's best checkpoint, checked to fit the net's ``current`` state dict by
+    name and shape. Other settings may differ (a fine-tune changes data, views available or
+    epochs); its epoch, optimizer and scheduler state are not taken."""
+    path = Path(source)
+    if path.is_dir():
+        path = best_checkpoint(path)[0]
+    ckpt = read_checkpoint(path)
+    check_weights(path, ckpt["state_dict"], current)
+    return ckpt["state_dict"]
 
 
 def check_fits(path: str | Path, ckpt: dict, net_cfg: dict, views: list[str]) -> None:

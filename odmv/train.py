@@ -16,7 +16,13 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from odmv.checkpoint import AtomicCheckpointIO, check_fits, check_weights, read_checkpoint
+from odmv.checkpoint import (
+    AtomicCheckpointIO,
+    check_fits,
+    check_weights,
+    initial_weights,
+    read_checkpoint,
+)
 from odmv.cli import (
     JobFailed,
     in_multirun,
@@ -150,6 +156,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
     if ckpt is not None:
         check_fits(cfg.ckpt_path, ckpt, module.hparams.net_cfg, list(dm.views))
         check_weights(cfg.ckpt_path, ckpt["state_dict"], module.state_dict())
+    elif cfg.get("init_from"):  # a resumed fine-tune continues from its own checkpoint instead
+        module.load_state_dict(initial_weights(cfg.init_from, module.state_dict()))
     trainer.fit(module, datamodule=dm, ckpt_path=cfg.ckpt_path, weights_only=True)
     train_seconds = module.train_seconds()  # a resumed run's included
     if trainer.is_global_zero:  # DDP: one process writes the run's files

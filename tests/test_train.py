@@ -109,6 +109,30 @@ def test_resume_continues_from_the_saved_epoch(trained, tiny_dataset, tmp_path):
     assert after["lr_schedulers"][0]["last_epoch"] == before["lr_schedulers"][0]["last_epoch"] + 1
 
 
+def test_init_from_starts_a_fine_tune_from_a_runs_best_weights(trained, tiny_dataset, tmp_path):
+    """init_from=RUN: a new run whose first step starts from the run's best weights, with its
+    own settings (view dropout), epochs and optimizer; weights of another net are refused in
+    one line naming the checkpoint."""
+    from odmv.checkpoint import CheckpointError
+
+    run, metrics = trained
+    out = tmp_path / "finetune"
+    # lr 0: Adam moves nothing, so the weights after its steps are the ones it started from
+    extra = (f"init_from={run}", "view_dropout=0.25", "optimizer.lr=0", "test=false")
+    train(compose_config("train", tiny_overrides(tiny_dataset, out, *extra)))
+    source = torch.load(metrics["best_checkpoint"], weights_only=True)
+    tuned = torch.load(out / "checkpoints" / "last.ckpt", weights_only=True)
+    assert tuned["global_step"] == 2  # its own two steps, not continued from the run's
+    stats = ("running_mean", "running_var", "num_batches_tracked")  # BatchNorm's, not weights
+    params = [k for k in source["state_dict"] if k.startswith("net.") and not k.endswith(stats)]
+    assert params and all(
+        torch.equal(source["state_dict"][k], tuned["state_dict"][k]) for k in params
+    )
+    wider = tiny_overrides(tiny_dataset, tmp_path / "w", *extra, "model.net.base_width=8")
+    with pytest.raises(CheckpointError, match=r"best.*\.ckpt: weights do not fit the net"):
+        train(compose_config("train", wider))
+
+
 def test_a_run_named_by_paths_output_dir_holds_its_config_and_resumes(tiny_dataset, tmp_path):
     """The app, as a user types it: the run folder gets Hydra's .hydra/ (so resume=DIR works),
     no .hydra-only folder is left under ./outputs, and the printed TensorBoard command runs."""

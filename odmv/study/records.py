@@ -5,34 +5,17 @@ run folder holds: :mod:`odmv.io.runfolder`; checkpoints: ``checkpoints/best-EPOC
 from __future__ import annotations
 
 import glob
-import json
 from pathlib import Path
 
 import hydra
 import numpy as np
 
+from odmv.checkpoint import best_checkpoint
 from odmv.config import CONF_DIR  # noqa: F401  (registers the config resolvers)
 from odmv.io.runfolder import HELDOUT, METRICS, PREDICTIONS, ROBUSTNESS, SCENES_CSV
 from odmv.module import load_module
 
 __all__ = ["HELDOUT", "METRICS", "PREDICTIONS", "ROBUSTNESS", "SCENES_CSV"]
-
-
-class RecordError(ValueError):
-    """A one-line error naming the run folder at fault."""
-
-
-def best_checkpoint(run: Path) -> tuple[Path, dict]:
-    """A finished run's best checkpoint (found beside it where the run folder was moved) and
-    its metrics.json."""
-    path = run / METRICS
-    if not path.is_file():
-        raise RecordError(f"{run}: no {METRICS} (not a finished run)")
-    metrics = json.loads(path.read_text())
-    ckpt = Path(metrics["best_checkpoint"])
-    if not ckpt.is_file():
-        ckpt = run / "checkpoints" / ckpt.name  # the run folder was moved
-    return ckpt, metrics
 
 
 def read_only(data: dict, **changes) -> dict:
