@@ -195,9 +195,10 @@ def _table_rows(protocol: str, tables: list[str], extra: list[str], seed: int):
 
 def _study_rows(protocol: str, rows: dict, extra: list[str], seed: int):
     """(name, overrides, config) of each of a study's own rows (NAME: [override, ...]) at
-    ``seed``."""
+    ``seed``; ``{seed}`` in an override is the seed (``init_from=RUNS/base-seed{seed}``: each
+    seed fine-tunes its own base run)."""
     for label, overrides in rows.items():
-        ov = [*overrides, f"seed={seed}"]
+        ov = [*(o.replace("{seed}", str(seed)) for o in overrides), f"seed={seed}"]
         try:
             cfg = compose_train([f"experiment={protocol}", *extra, *ov])
         except Exception as e:  # Hydra's composition errors name the bad override

@@ -398,6 +398,14 @@ def test_a_study_of_its_own_rows_trains_each_once_and_tables_them(tiny_dataset, 
     assert "(2 done)" in capsys.readouterr().out
     with pytest.raises(ReproduceError, match="rows.bad"):
         plan("mini", [], [0], overrides, runs, rows={"bad": ["model=nonet"]})
+    # {seed} in a row: each seed's run starts from the same seed's base run
+    tuned = plan(
+        "mini", [], [0, 1], overrides, runs, rows={"t": [f"init_from={runs}/l1-seed{{seed}}"]}
+    )
+    assert [(j.folder.name, j.overrides[-2]) for j in tuned] == [
+        ("t-seed0", f"init_from={runs}/l1-seed0"),
+        ("t-seed1", f"init_from={runs}/l1-seed1"),
+    ]
 
 
 def _row_overrides(dataset, tmp_path, *extra):

@@ -117,16 +117,23 @@ def test_robustness_rows_keep_randomized_and_dropout_trainings_apart(trained, tm
     run, metrics = trained
     cfg = OmegaConf.load(run / ".hydra" / "config.yaml")
     labels = []
-    for name, randomize, dropout in (("a", None, None), ("b", "all", None), ("c", None, 0.25)):
+    for name, randomize, dropout, init in (
+        ("a", None, None, None),
+        ("b", "all", None, None),
+        ("c", None, 0.25, None),
+        ("d", None, 0.25, str(run)),
+    ):
         folder = tmp_path / name
         (folder / ".hydra").mkdir(parents=True)
         OmegaConf.update(cfg, "data.randomize", randomize, force_add=True)
         OmegaConf.update(cfg, "view_dropout", dropout, force_add=True)
+        OmegaConf.update(cfg, "init_from", init, force_add=True)
         OmegaConf.save(cfg, folder / ".hydra" / "config.yaml")
         labels.append(robustness._label(folder, json.loads((run / "metrics.json").read_text())))
     assert labels[0] == robustness._label(run, metrics)
     assert labels[1] == labels[0] + ", randomize=all"
     assert labels[2] == labels[0] + ", view_dropout=0.25"
+    assert labels[3] == labels[2] + ", fine-tuned"
 
 
 def test_robustness_declares_views_missing_to_a_view_dropout_net(trained, tiny_dataset, tmp_path):

@@ -138,7 +138,8 @@ def score_classical(
 
 def _label(run: Path, metrics: dict) -> str:
     """The row a run belongs to: its net, view count and width, and the training settings
-    that make a robustness row of their own (a randomized twin, view dropout)."""
+    that make a robustness row of their own (a randomized twin, view dropout, a fine-tune of
+    another run)."""
     views = len(metrics.get("views") or [])
     name = f"{metrics.get('model')} S={views}"
     if metrics.get("model") == "odmvnet" and metrics.get("width"):
@@ -148,6 +149,8 @@ def _label(run: Path, metrics: dict) -> str:
         name += f", randomize={randomize}"
     if dropout:
         name += f", view_dropout={dropout}"
+    if _setting(run, "init_from"):
+        name += ", fine-tuned"
     return name
 
 
