@@ -239,24 +239,27 @@ def _dropout_table(rows: dict[str, list[dict]], views: dict[str, list[str]]) -> 
         + " |",
         "|---|---:|" + "---:|" * (1 + 2 * len(VIEW_NAMES)),
     ]
-    verdicts = []
-    for model in dropout:
-        base = model.split(", view_dropout=")[0]
-        three = base.replace("S=4", "S=3")
-        for name in [model] + [m for m in (base, three) if m in rows]:
-            seeds = rows[name]
-            cells = [_cell(seeds, "nominal")]
-            lacks = _lacks(views, name)
-            for v in VIEW_NAMES:
-                cells.append(
-                    _cell(seeds, "nominal") if v in lacks else _cell(seeds, f"missing:{v}")
-                )
-            cells += [_cell(seeds, f"dead_view:{v}") for v in VIEW_NAMES]
-            if lacks:
-                cells[0] = "–"
-            md.append(f"| {name} | {len(seeds)} | " + " | ".join(cells) + " |")
-        verdicts += _dropout_verdicts(model, rows, base, three, views)
+    refs = {model: _references(model) for model in dropout}
+    shown = dict.fromkeys([*dropout, *(r for pair in refs.values() for r in pair if r in rows)])
+    for name in shown:  # each reference once, below the dropout rows
+        seeds = rows[name]
+        cells = [_cell(seeds, "nominal")]
+        lacks = _lacks(views, name)
+        for v in VIEW_NAMES:
+            cells.append(_cell(seeds, "nominal") if v in lacks else _cell(seeds, f"missing:{v}"))
+        cells += [_cell(seeds, f"dead_view:{v}") for v in VIEW_NAMES]
+        if lacks:
+            cells[0] = "–"
+        md.append(f"| {name} | {len(seeds)} | " + " | ".join(cells) + " |")
+    verdicts = [line for m in dropout for line in _dropout_verdicts(m, rows, *refs[m], views)]
     return md + [""] + verdicts + ([""] if verdicts else [])
+
+
+def _references(model: str) -> tuple[str, str]:
+    """A view-dropout row's references: the same net without dropout (or fine-tune), and the
+    three-view net."""
+    base = model.split(", view_dropout=")[0]
+    return base, base.replace("S=4", "S=3")
 
 
 def _dropout_verdicts(model, rows, base, three, views) -> list[str]:
