@@ -204,6 +204,21 @@ def test_paper_keeps_the_recipe_and_the_other_presets_take_the_improvements():
     assert unet.model.net.in_channels == 3  # one view: fringe, sin, cos
 
 
+def test_quickstart_trains_in_bf16_where_the_cpu_has_bf16_instructions(monkeypatch):
+    # the demo's preset: bf16-mixed kept the accuracy (docs/performance.md), and only CPUs with
+    # AVX512-BF16 or AMX run it faster than float32; the reproduction presets stay float32
+    for avx512_bf16, amx, want in (
+        (True, False, "bf16-mixed"),
+        (False, True, "bf16-mixed"),
+        (False, False, "32"),
+    ):
+        monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda v=avx512_bf16: v)
+        monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda v=amx: v)
+        assert _compose(["experiment=quickstart"]).trainer.precision == want
+        assert _compose(["experiment=mini"]).trainer.precision == "32"
+        assert _compose(["experiment=paper"]).trainer.precision == "32"
+
+
 def test_plan_trains_a_configuration_shared_by_tables_once(tmp_path):
     jobs = plan("mini", ["views", "ablation", "models"], [0], [], tmp_path)
     names = [j.folder.name for j in jobs]
