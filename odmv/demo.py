@@ -37,7 +37,8 @@ def main(argv: list[str]) -> int:
     ratio = em["constant/mae_mm"] / em["test/mae_mm"]
     print("\n" + report(em))
     print(f"the model's MAE is {ratio:.1f}x smaller than the constant predictor's")
-    print(f"wall time: {minutes:.1f} min")
+    precision = {"32": "float32"}.get(str(cfg.trainer.precision), cfg.trainer.precision)
+    print(f"wall time: {minutes:.1f} min (trained in {precision})")
     print(f"TensorBoard: {tool('tensorboard')} --logdir {out / 'tensorboard'}")
     print(f"figures    : {out / 'evaluation' / 'figures'}")
     return 0
