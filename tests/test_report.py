@@ -149,3 +149,21 @@ def test_a_report_without_protocol_takes_it_from_the_records(tmp_path, monkeypat
     write_report([results / "runs"], tmp_path / "report")
     header = (tmp_path / "report" / "tables.md").read_text().splitlines()[:4]
     assert "- protocol: mini (from the runs' records)" in header
+
+
+def test_odmvnet_at_another_width_is_judged_against_the_baseline_of_its_size():
+    mae = {("odmvnet", 16): 0.2, ("odmvnet", 24): 0.1, ("uhrnet", None): 0.15, ("hnet", None): 0.3}
+    size = {16: 13.8e6, 24: 31.0e6, "uhrnet": 30.3e6, "hnet": 8.6e6}
+    runs = []
+    for (model, width), m in mae.items():
+        for k in (0, 1):
+            r = _run(model, 4 if model == "odmvnet" else 1, m + 0.01 * k, 0.5, k, "multitask")
+            r.metrics |= {"width": width, "parameters": size[width or model]}
+            runs.append(r)
+    w24 = "ODMV-Net at UHRNet's size (S=4, width 24) below"
+    claims = _claims(runs)
+    assert claims[f"{w24} UHRNet (S=1)"] == "holds"
+    assert [c for c in claims if c.startswith(w24)] == [f"{w24} UHRNet (S=1)"]
+    for r in runs:  # records without sizes: no peer, no claim
+        r.metrics.pop("parameters")
+    assert not any(c.startswith(w24) for c in _claims(runs))
