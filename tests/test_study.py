@@ -140,6 +140,8 @@ def test_robustness_declares_views_missing_to_a_view_dropout_net(trained, tiny_d
     """A net trained with view dropout is scored with each view declared missing; the report
     puts it beside the same net without dropout and the three-view net, under the view that
     one lacks. A net trained without dropout is never told a view is missing."""
+    from csv import DictReader
+
     from odmv.sim.shifts import Shift
     from odmv.study import robustness
     from odmv.train import train
@@ -175,3 +177,6 @@ def test_robustness_declares_views_missing_to_a_view_dropout_net(trained, tiny_d
     assert "against 0.5000 mm for odmvnet S=3" in table
     csv = (tmp_path / "report" / "robustness.csv").read_text()
     assert "missing:up" in csv and "missing:up" not in md.split("## Any set")[0]
+    sets = {(r["model"], r["set"]) for r in DictReader(csv.splitlines())}
+    assert ("odmvnet S=4, view_dropout=0.5", "missing:up") in sets
+    assert ("odmvnet S=4", "missing:up") not in sets  # never told a view is missing: no row

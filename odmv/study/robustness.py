@@ -190,8 +190,9 @@ def write_tables(
             if np.isfinite(coverage):  # the classical method scores what it reconstructs
                 cell += f", {100 * coverage:.0f} % covered"
             line.append(cell)
-            csv_rows.append({"model": model, "set": label, "seeds": len(seeds), "mae_mm": mae,
-                             "ratio_to_nominal": ratio})  # fmt: skip
+            if np.isfinite(mae):  # a net never told a view is missing has no such row
+                csv_rows.append({"model": model, "set": label, "seeds": len(seeds),
+                                 "mae_mm": mae, "ratio_to_nominal": ratio})  # fmt: skip
         table.append(line)
     md = [
         "# Robustness: MAE (mm) on shifted twins, and its ratio to the same model's nominal MAE",
