@@ -12,20 +12,28 @@ from pathlib import Path
 
 from odmv.io.manifest import MANIFEST
 
+CHECKOUT = Path(__file__).resolve().parent.parent
 
-def _git(*args: str) -> str:
-    root = Path(__file__).resolve().parent.parent
+
+def _git(root: Path, *args: str) -> str:
     done = subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True)
     if done.returncode:
         raise OSError(done.stderr.strip())
     return done.stdout.strip()
 
 
-def commit() -> str:
-    """The checkout's commit, marked where tracked files differ from it."""
+#: where runs write their records (a reproduction updates them while it runs): no code
+RESULTS = "experiments/results"
+
+
+def commit(root: Path = CHECKOUT) -> str:
+    """The commit of the checkout at ``root`` (odmv's own by default), marked where tracked
+    files other than result records differ from it."""
     try:
-        sha = _git("rev-parse", "--short", "HEAD")
-        dirty = _git("status", "--porcelain", "--untracked-files=no")
+        sha = _git(root, "rev-parse", "--short", "HEAD")
+        dirty = _git(
+            root, "status", "--porcelain", "--untracked-files=no", "--", ".", f":!{RESULTS}"
+        )
     except OSError:
         return "unknown (not a git checkout)"
     return sha + (" (with uncommitted changes)" if dirty else "")

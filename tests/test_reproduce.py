@@ -477,3 +477,28 @@ def test_keeping_a_run_keeps_the_robustness_scores_its_record_gained(tmp_path):
     (folder / "robustness.json").write_text(json.dumps({"nominal": {"test/mae_mm": 0.25}}))
     assert keep(folder, record)
     assert list(json.loads((record / "robustness.json").read_text())) == ["nominal"]
+
+
+def test_a_run_records_its_commit_as_clean_while_result_records_change(tmp_path):
+    """A reproduction writes its rows' records into the checkout as it goes; that is no change
+    to the code, so the rows after the first still record a clean commit."""
+    import subprocess
+
+    from odmv.provenance import RESULTS, commit
+
+    def git(*args):
+        subprocess.run(["git", "-C", str(tmp_path), *args], check=True, capture_output=True)
+
+    record, code = tmp_path / RESULTS / "mini" / "metrics.json", tmp_path / "odmv.py"
+    record.parent.mkdir(parents=True)
+    record.write_text("{}")
+    code.write_text("x = 1\n")
+    git("init", "-q")
+    git("add", ".")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "c")
+    sha = commit(tmp_path)
+    assert len(sha) >= 7 and "uncommitted" not in sha
+    record.write_text('{"test/mae_mm": 0.1}')
+    assert commit(tmp_path) == sha
+    code.write_text("x = 2\n")
+    assert commit(tmp_path) == f"{sha} (with uncommitted changes)"
