@@ -25,7 +25,7 @@ demo: install
 	$(BIN)/python -m odmv.demo
 
 # The paper's three experiments, the classical row and the report (resumable):
-#   make reproduce PROTOCOL=mini    (2-core CPU, about 10 h, resumable)   PROTOCOL=paper (a GPU)
+#   make reproduce PROTOCOL=mini    (2-core CPU, 12-20 h, resumable)   PROTOCOL=paper (a GPU)
 #   make reproduce RETRAIN='odmvnet-*'   trains those finished rows again if their preset changed
 PROTOCOL ?= mini
 reproduce: install
