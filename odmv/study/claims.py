@@ -84,9 +84,12 @@ def _peer(extra: Cell, table2: list[Cell]) -> Cell | None:
     """The paper's single-view net nearest in parameter count to ``extra`` (another size of
     ODMV-Net), so that it is compared at equal size; None where the runs record no sizes."""
     size = extra.stat("parameters")[0]
-    paper_rows = [c for c in table2 if c.row.improvement_pct is not None]
-    sized = [(abs(np.log(c.stat("parameters")[0] / size)), c) for c in paper_rows if c.runs]
-    sized = [(gap, c) for gap, c in sized if np.isfinite(gap)]
+    gaps = [
+        (abs(np.log(c.stat("parameters")[0] / size)), c)
+        for c in table2
+        if c.row.improvement_pct is not None
+    ]
+    sized = [(gap, c) for gap, c in gaps if np.isfinite(gap)]  # rows without runs or sizes: nan
     return min(sized, key=lambda g: g[0])[1] if sized else None
 
 
