@@ -6,6 +6,10 @@ files a trained run's test writes (``metrics.json``, ``test_scenes.csv``,
 ``test_predictions.npz``; NaN where nothing is reconstructed) and returns the metrics. Errors are
 over the reconstructed pixels of each subset; ``coverage`` is the share of the subset's valid
 pixels that is reconstructed.
+
+A :class:`Capture` makes the row see fewer images per projector, down to the one image a
+network sees (single-shot Fourier-transform profilometry): what learning adds is measured
+against what the classical method does with the same images (:data:`CAPTURES`).
 """
 
 from __future__ import annotations
@@ -19,7 +23,17 @@ import torch
 
 from odmv.data.dataset import DataError, check_spec, load_scene, split_scenes
 from odmv.data.subsets import MASKS
-from odmv.fpp import decode_phase, fuse_views, period_in_camera_px, triangulate_depth
+from odmv.fpp import (
+    anchor_to_plane,
+    decode_phase,
+    demodulate,
+    fuse_views,
+    period_in_camera_px,
+    triangulate_depth,
+    unwrap_spatial,
+    wrapped_phase,
+)
+from odmv.geometry import triangulation_maps
 from odmv.io.atomic import write_json
 from odmv.io.manifest import load_manifest
 from odmv.io.runfolder import METRICS
@@ -116,12 +130,108 @@ def reconstruct_scene(stack: np.ndarray, camera, projectors, options: PspOptions
     return fused_depth(decode_views(stack, options, camera, projectors), camera, projectors)
 
 
+@dataclass(frozen=True)
+class Capture:
+    """The images a classical row decodes per projector: ``steps`` phase-shifted images (a
+    divisor of the dataset's steps, evenly spaced from the network's step) of the network's
+    fringe, and with ``frequencies`` 2 as many of the one-period fringe too. One frequency is
+    unwrapped spatially and its fringe order anchored to the reference plane
+    (:func:`odmv.fpp.anchor_to_plane`); one step of it is single-shot Fourier-transform
+    profilometry (:func:`odmv.fpp.demodulate`) of exactly the image a network sees."""
+
+    steps: int
+    frequencies: int = 1
+    tolerance_mm: float = TOLERANCE_MM  # fusion: views further from the median do not count
+    edge_mm: float = EDGE_MM  # fusion: mixed-pixel rejection against the 3 x 3 median
+
+    @property
+    def images(self) -> int:
+        return self.steps * self.frequencies
+
+    @property
+    def label(self) -> str:
+        if self.images == 1:
+            return "Fourier transform, 1 image"
+        fringes = "the network's fringe" if self.frequencies == 1 else "2 frequencies"
+        return f"{self.steps}-step, {fringes}, {self.images} images"
+
+    @property
+    def name(self) -> str:
+        return f"classical-{self.steps}x{self.frequencies}"
+
+
+#: The capture curve: images per projector from the network's one to the full sequences
+CAPTURES = (
+    # one image's views disagree more than the sequences' (its phase is filtered over a
+    # period): its fusion keeps views within 0.3 mm of each other (0.1 mm cuts its coverage to
+    # a quarter, 1 mm doubles its error; measured on training scenes of the tiny twin)
+    Capture(1, 1, 0.3, 0.6),
+    Capture(3),
+    Capture(4),
+    Capture(3, 2),
+    Capture(4, 2),
+    Capture(12),
+    Capture(12, 2),
+)
+
+
+def capture_depth(stack, m, capture: Capture, camera, projectors, views) -> np.ndarray:
+    """One scene's depth (mm, NaN where rejected) from ``capture``'s images of its full
+    sequences (V, F, N, H, W in the manifest's frequency order)."""
+    h, w = stack.shape[-2:]
+    n_steps = m.fringe.steps
+    if n_steps % capture.steps:
+        raise DataError(f"classical: {capture.steps} steps do not divide the dataset's {n_steps}")
+    f_net = m.fringe.resolve_frequency(m.fringe.train_frequency)
+    coarse = int(np.argmax(m.fringe.periods_px))
+    period = m.fringe.periods_px[f_net]
+    step0 = m.fringe.train_step
+    picked = [(step0 + k * n_steps // capture.steps) % n_steps for k in range(capture.steps)]
+    ref = triangulation_maps(m.rig, views, h, w, period, step0, n_steps)[:, 0].astype(np.float64)
+    depths, mods = [], []
+    for v, proj in enumerate(projectors):
+        if capture.frequencies == 2:
+            periods = [m.fringe.periods_px[coarse], period]  # projector px
+            images = stack[v][[coarse, f_net]][:, picked]
+            # the steps picked start at step0: shift their phases back to step 0's
+            u, mod, ok, _ = decode_phase(
+                images, periods, MIN_MODULATION, 1, 2 * np.pi * step0 / n_steps
+            )
+        else:
+            if capture.steps == 1:
+                ref_rad = 2 * np.pi * (ref[v] / period + step0 / n_steps)
+                # the image axis the fringe's phase runs along
+                axis = int(
+                    np.abs(np.diff(ref[v], axis=1)).mean() > np.abs(np.diff(ref[v], axis=0)).mean()
+                )
+                dphi, mod = demodulate(
+                    stack[v, f_net, step0], ref_rad, period_in_camera_px(period, camera, proj), axis
+                )
+            else:
+                phase, mod = wrapped_phase(stack[v, f_net][picked], 1, 2 * np.pi * step0 / n_steps)
+                dphi = np.angle(np.exp(1j * (phase - 2 * np.pi * ref[v] / period)))
+            ok = mod >= MIN_MODULATION
+            dphi = anchor_to_plane(unwrap_spatial(dphi, mod, ok), ok)
+            u = ref[v] + period * dphi / (2 * np.pi)
+            ok &= np.isfinite(u)
+        depth = triangulate_depth(np.nan_to_num(u), camera, proj)
+        depths.append(np.where(ok & np.isfinite(depth), depth, np.nan))
+        mods.append(mod)
+    return fuse_views(np.stack(depths), np.stack(mods), capture.tolerance_mm, capture.edge_mm)
+
+
 def classical_row(
-    root: str | Path, out_dir: str | Path, resolution=None, split: str = "test"
+    root: str | Path,
+    out_dir: str | Path,
+    resolution=None,
+    split: str = "test",
+    capture: Capture | None = None,
 ) -> dict:
     """Reconstruct every scene of ``split`` of the dataset at ``root`` classically, from the
     images resized to ``resolution`` as the networks see them (None: as stored); write and
-    return its metrics (keys like a trained run's: ``test/mae_mm``, ..., ``test/coverage``)."""
+    return its metrics (keys like a trained run's: ``test/mae_mm``, ..., ``test/coverage``).
+    ``capture``: the images decoded per projector (None: every step of every frequency the
+    camera resolves)."""
     t0 = time.perf_counter()
     m = load_manifest(root)
     if m.images != "full":
@@ -141,8 +251,11 @@ def classical_row(
     rows, preds = [], {"scene_id": [], "pred_mm": [], "depth_mm": []}
     for sid in ids:
         raw = load_scene(m, sid, spec)
-        stack = raw["fringe_stack"].reshape(len(m.views), n_f, n_s, h, w)[:, coarse_first]
-        depth = reconstruct_scene(stack, cam, projectors, options)
+        stack = raw["fringe_stack"].reshape(len(m.views), n_f, n_s, h, w)
+        if capture is None:
+            depth = reconstruct_scene(stack[:, coarse_first], cam, projectors, options)
+        else:
+            depth = capture_depth(stack, m, capture, cam, projectors, list(m.views))
         gt = torch.from_numpy(raw["depth_mm"][None].astype(np.float32))
         pred = torch.from_numpy(np.nan_to_num(depth, nan=0.0)[None, None].astype(np.float32))
         ok = torch.from_numpy(np.isfinite(depth)[None, None]).float()
@@ -182,6 +295,7 @@ def classical_row(
     out.update(
         model="classical",
         views=list(m.views),
+        images_per_projector=(capture.images if capture else n_s * len(options.frequencies)),
         parameters=0,
         train_seconds=0.0,
         test_seconds=round(time.perf_counter() - t0, 1),

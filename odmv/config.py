@@ -105,6 +105,19 @@ def availability(view_dropout):
     return True if view_dropout is not None else None
 
 
+def phase_head(head):
+    """The data module's ``calibration`` switch: True with ``head=phase``, else None (off)."""
+    if head not in (None, "depth", "phase"):
+        raise ValueError(f"head={head}: unknown; choose depth or phase")
+    return True if head == "phase" else None
+
+
+def phase_views(head, views):
+    """A baseline's ``n_views``: the view count with ``head=phase`` (its phase head's outputs),
+    else None."""
+    return n_views(views) if phase_head(head) else None
+
+
 def first_set(*values):
     """The first value that is not null: ``${odmv.first:${out},DEFAULT}``."""
     return next((v for v in values if v is not None), None)
@@ -164,6 +177,8 @@ for _name, _fn in (
     ("odmv.contenders", contenders),
     ("odmv.randomize", randomize_profile),
     ("odmv.availability", availability),
+    ("odmv.phase_head", phase_head),
+    ("odmv.phase_views", phase_views),
 ):
     if not OmegaConf.has_resolver(_name):
         OmegaConf.register_new_resolver(_name, _fn)

@@ -27,7 +27,7 @@ from odmv.io.atomic import write_json
 from odmv.io.manifest import MANIFEST
 from odmv.io.runfolder import METRICS, PREDICTIONS, SCENES_CSV
 from odmv.metrics import DepthErrors
-from odmv.module import load_module, net_input
+from odmv.module import batched, load_module
 from odmv.study.records import read_only
 
 matplotlib.use("Agg")
@@ -221,7 +221,7 @@ def evaluate(cfg: DictConfig, overrides: list[str] | None = None) -> dict:
     with torch.no_grad():
         for i in range(min(cfg.figures, len(ds))):
             sample = ds[i]
-            out = module(net_input(sample)[None])
+            out = module.run(batched(sample))
             pred_mm = module.depth_mm(out)[0, 0].numpy()
             save_figure(
                 out_dir / "figures" / f"{sample['scene_id']}.png",

@@ -1,4 +1,5 @@
-"""Classical fringe analysis: N-step phase shifting, temporal unwrapping, triangulation.
+"""Classical fringe analysis: N-step phase shifting, single-shot Fourier-transform
+profilometry, temporal and spatial unwrapping, triangulation.
 
 The reference that learned methods are measured against, and the check that the digital twin's
 images and calibration agree: rendered fringes -> phase -> projector column -> depth in mm.
@@ -126,6 +127,54 @@ def decode_phase(
         raise ValueError(f"unwrap: {unwrap!r} unknown; choose temporal or spatial")
     u, ok = unwrap_checked(phases, periods)
     return u, mods[int(np.argmin(periods))], ok & modulated & np.isfinite(u), modulated
+
+
+def demodulate(
+    image: np.ndarray, reference_rad: np.ndarray, period_px: float, axis: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Single-shot Fourier-transform profilometry of one fringe image (H, W; linear intensity)
+    against the phase the reference plane gives each pixel (``reference_rad``, H x W) ->
+    (the phase difference in (-pi, pi], the modulation B).
+
+    The image I = A + B cos(phi) is mixed down by the reference carrier: I exp(-i phi_ref)
+    = (B / 2) exp(i (phi - phi_ref)) + A exp(-i phi_ref) + (B / 2) exp(-i (phi + phi_ref)).
+    A moving average over one fringe period (``period_px``, camera px, along image ``axis``:
+    1 for fringes whose phase runs along the columns) removes the two carrier terms, at one and
+    two periods, exactly for a uniform carrier, and leaves the height-induced phase at the
+    resolution of one period: the filter that carrier filtering in the Fourier domain is."""
+    mixed = image * np.exp(-1j * reference_rad)
+    return _period_mean(mixed, period_px, axis)
+
+
+def _period_mean(z: np.ndarray, period_px: float, axis: int) -> tuple[np.ndarray, np.ndarray]:
+    from scipy.ndimage import convolve1d
+
+    n = int(np.ceil(period_px))
+    n += 1 - n % 2  # odd, centred
+    k = np.ones(n)
+    k[[0, -1]] = 1 - (n - period_px) / 2  # fractional ends: the box is one period long
+    k /= k.sum()
+    low = convolve1d(z.real, k, axis=axis, mode="nearest") + 1j * convolve1d(
+        z.imag, k, axis=axis, mode="nearest"
+    )
+    return np.angle(low), 2 * np.abs(low)
+
+
+def anchor_to_plane(offset_rad: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """A spatially unwrapped phase difference to the reference plane (H, W; each 4-connected
+    region of ``ok`` off by an unknown multiple of 2 pi, :func:`unwrap_spatial`) with each
+    region's multiple chosen so that its median lies nearest the plane (within pi): the fringe
+    order a single image cannot tell, guessed as the twin's scenes have it (most of each
+    region on or near the base plane). A region wholly on a part taller than half a fringe
+    period is placed a period low."""
+    from scipy.ndimage import label
+
+    regions, n = label(ok)
+    out = offset_rad.copy()
+    for r in range(1, n + 1):
+        sel = regions == r
+        out[sel] -= 2 * np.pi * np.round(np.median(offset_rad[sel]) / (2 * np.pi))
+    return out
 
 
 def triangulate_depth(u_px: np.ndarray, camera: Camera, projector: Projector) -> np.ndarray:

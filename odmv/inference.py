@@ -1,6 +1,8 @@
 """A trained net as a depth function: a checkpoint (run by PyTorch) or an exported ONNX model
 (run by ONNX Runtime) with the views, input size, normalization and input settings it was
-trained with. Used by ``odmv.predict`` and by anything that runs a net on images."""
+trained with. Used by ``odmv.predict`` and by anything that runs a net on images. A net with
+the phase head (``head=phase``) also takes the rig's triangulation maps (odmv.geometry), built
+from the same calibration as the reference phase, and gives each view's fusion weight."""
 
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ from odmv.data.normalize import Normalization
 from odmv.data.reference import network_input, reference_mode, reference_phase
 from odmv.data.views import with_availability
 from odmv.export import METADATA_KEY, input_shape
+from odmv.geometry import triangulation_maps
 from odmv.module import load_module
 from odmv.rig import Rig
 
@@ -23,13 +26,25 @@ from odmv.rig import Rig
 @dataclass
 class Predictor:
     """A trained net with what it needs to turn images into depth: its views in order, input
-    size (H, W), normalization and input settings, and ``run``: net input -> depth (mm)."""
+    size (H, W), normalization and input settings, and ``run``: (net input, calibration maps
+    or None) -> {"depth_mm": B x 1 x H x W, and with the phase head "weights": B x (S + 1) x
+    H x W, each view's share of the fused depth, then the regressed depth's}."""
 
     views: list[str]
     size: tuple[int, int]
     norm: Normalization
     input_spec: dict
-    run: Callable[[torch.Tensor], np.ndarray]
+    run: Callable[[torch.Tensor, torch.Tensor | None], dict]
+
+    def calibration(self, rig: Rig) -> torch.Tensor | None:
+        """The triangulation maps (1 x S x 6 x H x W) a phase-head net needs; None for others."""
+        spec = self.input_spec
+        if not spec.get("calibration"):
+            return None
+        maps = triangulation_maps(
+            rig, self.views, *self.size, spec["period_px"], spec["step"], spec["n_steps"]
+        )
+        return torch.from_numpy(maps)[None]
 
     def inputs(self, fringes: np.ndarray, rig: Rig, available=None) -> torch.Tensor:
         """The net's input (1 x C x H x W) from linear-intensity images (S x H x W);
@@ -56,9 +71,13 @@ def load_predictor(path: str | Path) -> Predictor:
         return _onnx_predictor(Path(path))
     module = load_module(path).eval()
 
-    def run(x: torch.Tensor) -> np.ndarray:
+    def run(x: torch.Tensor, calibration: torch.Tensor | None = None) -> dict:
         with torch.no_grad():
-            return module.depth_mm(module(x)).numpy().astype(np.float32)
+            out = module(x, calibration)
+            result = {"depth_mm": module.depth_mm(out).numpy().astype(np.float32)}
+            if "weights" in out:
+                result["weights"] = out["weights"].numpy()
+            return result
 
     return Predictor(
         list(module.hparams.views),
@@ -83,8 +102,14 @@ def _onnx_predictor(path: Path) -> Predictor:
         raise ValueError(f"{path}: no odmv metadata (export it with python -m odmv.export)")
     meta = json.loads(meta)
 
-    def run(x: torch.Tensor) -> np.ndarray:
-        return session.run(None, {"inputs": x.numpy()})[0]
+    names = [o.name for o in session.get_outputs()]
+    takes_maps = any(i.name == "calibration" for i in session.get_inputs())
+
+    def run(x: torch.Tensor, calibration: torch.Tensor | None = None) -> dict:
+        feed = {"inputs": x.numpy()}
+        if takes_maps:
+            feed["calibration"] = calibration.numpy()
+        return dict(zip(names, session.run(None, feed), strict=True))
 
     return Predictor(
         meta["views"],

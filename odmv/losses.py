@@ -8,6 +8,14 @@ not produce are skipped. Auxiliary targets are the depth taken at each scale's p
 (the same rule the data module resizes with), so no target depth is invented at an edge.
 Pixels without ground truth (NaN depth, e.g. an imported dataset's background) add no error:
 the L1 term averages over valid pixels, and SSIM sees the prediction there.
+
+With the phase head (``head=phase``, odmv.models.phase; beyond the paper) the main depth is the
+fused one, and each view is supervised on its lit pixels: its phase (the ``phase`` term), its
+fringe order where the net classifies it (``order``, cross-entropy against the nearest whole
+number of periods between the true projector coordinate and the reference plane's) and
+its confidence (``confidence``, BCE against the lit mask, or against the view's depth lying
+within ``confidence_tol_mm`` of the truth); the net's own regressed depth, the fallback of the
+fusion, keeps a depth loss of its own (``regressed``).
 """
 
 from __future__ import annotations
@@ -18,9 +26,22 @@ import torch
 import torch.nn.functional as F
 from kornia.metrics import ssim
 
+from odmv.geometry import offset_from_coord
+from odmv.models.phase import lowest_order
+
 # the weights of the terms beyond the main depth loss, and the net output each term needs: a
 # weight is read only for a net with that output (each net lists its terms in LOSS_TERMS)
 OPTIONAL_TERMS = {"aux": "aux", "view": "views", "occlusion": "occlusion", "phase": "phase"}
+# the loss settings that only the phase head reads (besides its ``phase`` term)
+PHASE_TERMS = (
+    "phase",
+    "order",
+    "confidence",
+    "confidence_target",
+    "confidence_tol_mm",
+    "regressed",
+)
+CONFIDENCE_TARGETS = ("lit", "error")
 
 
 @dataclass
@@ -29,9 +50,20 @@ class LossWeights:
     aux: list[float] = field(default_factory=lambda: [0.5, 0.3])  # lambda_1, lambda_2 (eq. 1)
     view: float = 0.2  # lambda_3
     occlusion: float = 0.0  # OCD supervision with lit masks (not in the paper)
-    phase: float = 1.0  # wrapped-phase head of multi-task baselines (MTLNet)
+    phase: float = 1.0  # wrapped-phase head of multi-task baselines (MTLNet) and head=phase
+    order: float = 1.0  # head=phase: fringe-order cross-entropy
+    confidence: float = 1.0  # head=phase: confidence BCE
+    confidence_target: str = "lit"  # lit | error
+    confidence_tol_mm: float = 0.2  # the error target's tolerance
+    regressed: float = 1.0  # head=phase: depth loss of the regressed fallback
     ssim_window: int = 11
     depth_range: float = 2.0  # dynamic range of normalized depth, SSIM's L
+
+    def __post_init__(self):
+        if self.confidence_target not in CONFIDENCE_TARGETS:
+            raise ValueError(
+                f"loss.confidence_target: {self.confidence_target!r} unknown; choose lit or error"
+            )
 
 
 def resize_target(t: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
@@ -93,5 +125,38 @@ def composite_loss(out: dict, batch: dict, w: LossWeights) -> dict[str, torch.Te
         err = (out["phase"] - target) ** 2 * mask
         terms["phase"] = err.sum() / mask.sum().clamp_min(1)
         total = total + w.phase * terms["phase"]
+    if "confidence" in out:
+        total = total + _phase_head_terms(out, batch, w, available, terms)
     terms["loss"] = total
     return terms
+
+
+def _phase_head_terms(out, batch, w: LossWeights, available, terms: dict) -> torch.Tensor:
+    """The phase head's order, confidence and regressed-depth terms (added to ``terms``);
+    returns their weighted sum."""
+    lit = batch["lit"] if available is None else batch["lit"] * available[..., None, None]
+    lit = lit.bool()
+    total = 0.0
+    if "order" in out:
+        maps, logits = batch["calibration"], out["order"].float()  # B x S x K x H x W
+        k = logits.shape[2]
+        with torch.no_grad():
+            coord = torch.nan_to_num(batch["projector_coord"], nan=0.0)
+            order = torch.round(offset_from_coord(coord, maps) / maps[:, :, 1]) - lowest_order(k)
+            order = order.clamp(0, k - 1).long()
+        ce = F.cross_entropy(logits.transpose(1, 2), order, reduction="none")  # B x S x H x W
+        terms["order"] = (ce * lit).sum() / lit.sum().clamp_min(1)
+        total = w.order * terms["order"]
+    conf = out["confidence"][:, : lit.shape[1]].float()
+    if w.confidence_target == "lit":
+        target = lit.float()
+    else:  # the view's own depth within the tolerance of the truth
+        err = (out["view_depth_mm"].detach() - batch["depth_mm"]).abs()
+        target = (err <= w.confidence_tol_mm).float()
+    seen = (
+        lit.new_ones(lit.shape) if available is None else available[..., None, None].expand_as(lit)
+    )
+    bce = F.binary_cross_entropy_with_logits(conf, target, reduction="none")
+    terms["confidence"] = (bce * seen).sum() / seen.sum().clamp_min(1)
+    terms["regressed"] = depth_loss(out["regressed"], batch["depth"], w)["loss"]
+    return total + w.confidence * terms["confidence"] + w.regressed * terms["regressed"]

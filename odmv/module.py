@@ -27,6 +27,8 @@ from odmv.io.atomic import write_csv, write_npz
 from odmv.io.runfolder import PREDICTIONS, SCENES_CSV
 from odmv.losses import LossWeights, composite_loss
 from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_results
+from odmv.models.blocks import split_availability
+from odmv.models.phase import fuse, has_phase_head
 
 
 class NonFiniteLossError(ValueError):
@@ -56,6 +58,7 @@ class FPPModule(L.LightningModule):
         # logged by on_fit_start once the data has resolved the views and normalization
         self.save_hyperparameters(logger=False)
         self.net = build_net(net_cfg)
+        self.phase_head = has_phase_head(self.net)  # head=phase: fused through the calibration
         # torch.compile's wrapper of the net, kept off the module tree: the checkpoint holds
         # the plain net's weights under their own names, loadable with or without compiling
         object.__setattr__(
@@ -93,21 +96,39 @@ class FPPModule(L.LightningModule):
                 "step": spec.step,
                 "n_steps": spec.n_steps,
                 "quantity": dm.manifest.quantity,  # what the depth maps hold: depth or height
+                "calibration": spec.calibration,  # head=phase: takes the triangulation maps
             }
             # one input at the data's size: the model summary then counts FLOPs per sample
             ds = next(iter(dm.datasets.values()), None)
             if ds is not None and len(ds):
-                self.example_input_array = torch.zeros_like(net_input(ds[0]))[None]
+                sample = batched(ds[0])
+                x = torch.zeros_like(net_input(sample))
+                calibration = sample.get("calibration")
+                self.example_input_array = x if calibration is None else (x, calibration)
 
-    def forward(self, inputs: torch.Tensor) -> dict:
+    def forward(self, inputs: torch.Tensor, calibration: torch.Tensor | None = None) -> dict:
         """``inputs``: the net's input, i.e. a batch's ``inputs`` (fringes plus the reference
-        phase) when the data has them, else its normalized ``fringes``."""
+        phase) when the data has them, else its normalized ``fringes``. ``calibration``: the
+        batch's triangulation maps (B x S x 6 x H x W, odmv.geometry), which a net with the
+        phase head needs to turn its views' phase into the fused ``depth``."""
         net = self.net if self._compiled is None else self._compiled
-        return net(inputs)
+        out = net(inputs)
+        if not self.phase_head:
+            return out
+        if calibration is None:
+            raise ValueError("head=phase: the net needs the rig's calibration maps with its input")
+        available = None
+        if (self.hparams.input_spec or {}).get("availability"):
+            available = split_availability(inputs, calibration.shape[1])[1]
+        return fuse(out, calibration, self.norm, available)
+
+    def run(self, batch: dict) -> dict:
+        """The net's outputs for a batch (or one sample with a batch axis added)."""
+        return self(net_input(batch), batch.get("calibration"))
 
     # ---------------------------------------------------------------- steps
     def training_step(self, batch, _):
-        out = self(net_input(batch))
+        out = self.run(batch)
         terms = composite_loss(out, batch, self.weights)
         if not torch.isfinite(terms["loss"]):  # stop: every later step and metric would be NaN
             bad = [k for k, v in terms.items() if not torch.isfinite(v)]
@@ -139,7 +160,7 @@ class FPPModule(L.LightningModule):
 
     def _evaluate(self, batch, stage: str) -> tuple[dict, torch.Tensor, dict]:
         """Loss and metrics of one batch; returns the output, the depth in mm and the masks."""
-        out = self(net_input(batch))
+        out = self.run(batch)
         terms = composite_loss(out, batch, self.weights)
         pred_mm = self.depth_mm(out)
         masks = subset_masks(batch)
@@ -294,6 +315,11 @@ def _add_hparams_session(logger: TensorBoardLogger, params: dict) -> None:
 def net_input(batch: dict) -> torch.Tensor:
     """The tensor a net takes from a batch or sample (see :meth:`FPPModule.forward`)."""
     return batch["inputs"] if "inputs" in batch else batch["fringes"]
+
+
+def batched(sample: dict) -> dict:
+    """One sample as a batch of one (tensors get a batch axis, other values a list)."""
+    return {k: v[None] if torch.is_tensor(v) else [v] for k, v in sample.items()}
 
 
 def subset_masks(batch: dict) -> dict[str, torch.Tensor]:

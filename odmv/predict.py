@@ -310,7 +310,10 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
                 images = network_images(scene, predictor, reader, rig, have)
                 available = np.array([v in have for v in predictor.views], np.float32)
                 x = predictor.inputs(images, rig, available)
-                depth = predictor.run(x)[0, 0].astype(np.float32)
+                result = predictor.run(x, predictor.calibration(rig))
+                depth = result["depth_mm"][0, 0].astype(np.float32)
+                if "weights" in result:  # head=phase: each view's share of the depth
+                    write_weights(out, result["weights"][0], predictor.views)
                 period, used = predictor.input_spec.get("period_px"), predictor.views
             else:
                 rig = scene.manifest.rig if scene.manifest else default_rig
@@ -438,6 +441,14 @@ def write_phases(out: Path, views: list[str], decoded: list, options: PspOptions
             )
         )
     return written
+
+
+def write_weights(out: Path, weights: np.ndarray, views: list[str]) -> Path:
+    """``weights.exr``: a phase-head net's fusion weights, one channel per view and one,
+    ``regressed``, for its regressed depth (they sum to 1 at every pixel)."""
+    out.mkdir(parents=True, exist_ok=True)
+    channels = dict(zip([*views, "regressed"], weights.astype(np.float32), strict=True))
+    return write_exr(out / "weights.exr", channels, attributes={"unit": "share of the depth"})
 
 
 def write_outputs(

@@ -38,7 +38,7 @@ from odmv.cli import run_app
 from odmv.config import CONF_DIR, compose_train
 from odmv.io.atomic import write_json, write_text
 from odmv.io.runfolder import CONFIG, METRICS, PREDICTIONS, ROBUSTNESS, SCENES_CSV
-from odmv.losses import OPTIONAL_TERMS
+from odmv.losses import OPTIONAL_TERMS, PHASE_TERMS
 from odmv.report import write_report
 from odmv.sim.shifts import parse_shift
 from odmv.study.figures import FIGURE_SCENES, pick_scenes
@@ -155,8 +155,10 @@ def _run_key(cfg: DictConfig) -> str:
     for about in ("table2", "published_parameters"):  # what the registry says of the net
         d["model"].pop(about, None)
     net = hydra.utils.get_class(d["model"]["net"]["_target_"])
-    for term in OPTIONAL_TERMS:  # a loss weight the net has no output for is never read
-        if term not in net.LOSS_TERMS:
+    # a loss setting the net has no output for is never read
+    terms = set(net.LOSS_TERMS) | (set(PHASE_TERMS) if d.get("head") == "phase" else set())
+    for term in (*OPTIONAL_TERMS, *PHASE_TERMS):
+        if term not in terms:
             d["loss"].pop(term, None)
     callbacks = d.get("callbacks") or {}
     for name in [n for n, c in callbacks.items() if c.get("_target_") in RECORDERS]:

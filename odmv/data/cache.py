@@ -25,11 +25,16 @@ _ARRAYS = {
     "lit": np.uint8,
     **dict.fromkeys(MASKS, np.uint8),
     "phase_target": np.float32,
+    "projector_coord": np.float32,
 }
 
 
 def _names(spec: SampleSpec) -> list[str]:
-    return [k for k in _ARRAYS if k != "phase_target" or spec.with_phase]
+    wanted = {
+        "phase_target": spec.with_phase or spec.calibration,
+        "projector_coord": spec.calibration,
+    }
+    return [k for k in _ARRAYS if wanted.get(k, True)]
 
 
 _DONE = "complete.json"
@@ -81,6 +86,7 @@ class ArrayCache:
             "lit": (s, h, w),
             **dict.fromkeys(MASKS, (1, h, w)),
             "phase_target": (2 * s, h, w),
+            "projector_coord": (s, h, w),
         }
         names = _names(spec)
         try:

@@ -63,6 +63,9 @@ class FPPDataModule(L.LightningDataModule):
     availability (:mod:`odmv.data.views`). None: every view always, and no availability input.
     ``randomize``: the name of the domain-randomization profile the synthetic dataset was asked
     with (conf/randomize/); the profile itself reaches the simulator through ``simulate``.
+    ``calibration``: beyond the paper, for ``head=phase``: every sample carries the rig's
+    triangulation maps (odmv.geometry), each view's projector coordinates and phase targets
+    (needs a dataset with a rig). None: none of them.
     """
 
     def __init__(
@@ -92,6 +95,7 @@ class FPPDataModule(L.LightningDataModule):
         augment: str | None = None,
         randomize: str | None = None,
         view_dropout: float | None = None,
+        calibration: bool | None = None,
         progress: bool = True,
     ):
         super().__init__()
@@ -115,9 +119,13 @@ class FPPDataModule(L.LightningDataModule):
         self.reference = reference
         if augment not in AUGMENTS:
             raise DataError(f"data.augment: {augment!r} unknown; choose null or rot90")
+        if augment and calibration:
+            # a turned sample would need its calibration maps turned and re-assigned too
+            raise DataError("data.augment: rot90 is not supported with head=phase; use null")
         self.train_steps, self.augment = train_steps, augment
         self.randomize = randomize
         self.view_dropout = view_dropout
+        self.calibration = bool(calibration)
         self.progress = progress
         self.manifest: Manifest | None = None
         self.spec: SampleSpec | None = None
@@ -186,6 +194,7 @@ class FPPDataModule(L.LightningDataModule):
             self.with_stacks,
             self.with_phase,
             self.reference,
+            self.calibration,
         )
         sat = m.extra.get("simulation", {}).get("render", {}).get("saturation", 1.0)
         intensity_max = self.intensity_max if self.intensity_max is not None else sat

@@ -20,6 +20,7 @@ from odmv.data.normalize import Normalization
 from odmv.data.reference import network_input, reference_mode, reference_phase
 from odmv.data.subsets import MASKS, footprint_from_depth, subset_masks
 from odmv.data.views import with_availability
+from odmv.geometry import triangulation_maps
 from odmv.io.exr import ExrError, read_exr
 from odmv.io.manifest import (
     DEPTH_CHANNEL,
@@ -37,7 +38,7 @@ from odmv.io.manifest import (
 from odmv.rig import check_views, size_hw
 
 #: Bumped whenever a sample gains or changes an array, so stale caches are not reused.
-SAMPLE_VERSION = 3
+SAMPLE_VERSION = 4
 
 
 class DataError(ValueError):
@@ -58,6 +59,7 @@ class SampleSpec:
     period_px: float = 0.0  # fringe period of the input image (projector px)
     n_steps: int = 1  # phase steps of its sequence
     reference: str | None = None  # the reference-plane phase as input: phase | demod
+    calibration: bool = False  # also the rig's triangulation maps and the projector coordinates
 
     def key(self) -> dict:
         return asdict(self)
@@ -72,6 +74,7 @@ def check_spec(
     with_stacks: bool = False,
     with_phase: bool = False,
     reference=None,
+    calibration: bool = False,
 ) -> SampleSpec:
     """Resolve and check sample settings against a manifest (one-line DataError on a problem)."""
     try:
@@ -103,6 +106,11 @@ def check_spec(
         raise DataError(str(e)) from None
     if with_stacks and m.images != "full":
         raise DataError(f"data.with_stacks: {m.root} holds no full sequences (images=training)")
+    if calibration and m.rig is None:
+        raise DataError(
+            f"head=phase: {m.root} has no rig calibration, so phase cannot become depth; "
+            "use head=depth"
+        )
     return SampleSpec(
         views,
         h,
@@ -114,6 +122,7 @@ def check_spec(
         m.fringe.periods_px[f],
         m.fringe.steps,
         reference,
+        calibration,
     )
 
 
@@ -195,8 +204,9 @@ def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]
     """Raw arrays of one scene at ``spec``'s size: fringes (S,H,W) linear intensity,
     depth_mm (1,H,W), lit (S,H,W) bool, the subsets shadowed, unlit, first_unlit and
     first_shadowed (1,H,W) bool over every projector of the dataset; with stacks also
-    fringe_stack (S,K,H,W) and projector_coord (S,H,W, NaN where unlit); with phase also
-    phase_target (2S,H,W: sin, cos of each view's input-image phase, 0 where unlit).
+    fringe_stack (S,K,H,W); with stacks or calibration projector_coord (S,H,W, NaN where
+    unlit); with phase (or calibration) also phase_target (2S,H,W: sin, cos of each view's
+    input-image phase, 0 where unlit).
     Raises DataError naming a bad file."""
     d = m.scene_dir(sid)
     shape = (m.height_px, m.width_px)
@@ -238,10 +248,13 @@ def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]
     }
     for name, mask in subsets.items():
         out[name] = _resize(mask.astype(np.float32), h, w, "nearest-exact") > 0.5
-    if spec.with_stacks or spec.with_phase:
+    if spec.with_stacks or spec.with_phase or spec.calibration:
         coord = _read(d / PROJ_COORD_FILE, list(spec.views))
         coord = _resize(np.stack([coord[v] for v in spec.views]), h, w, "nearest-exact")
-    if spec.with_phase:  # the image is A + B cos(phase): phase = 2 pi u / P + 2 pi n / N
+    if spec.calibration:
+        out["projector_coord"] = coord.astype(np.float32)
+    if spec.with_phase or spec.calibration:
+        # the image is A + B cos(phase): phase = 2 pi u / P + 2 pi n / N
         phase = 2 * np.pi * (coord / spec.period_px + spec.step / spec.n_steps)
         sc = np.stack([np.sin(phase), np.cos(phase)], 1).reshape(-1, h, w)
         out["phase_target"] = np.nan_to_num(sc, nan=0.0).astype(np.float32)
@@ -268,7 +281,8 @@ def fingerprint(m: Manifest, ids: list[str], spec: SampleSpec) -> str:
     for sid in ids:
         d = m.scene_dir(sid)
         files = [d / FRINGE_DIR / fringe_name(v, spec.frequency, spec.step) for v in spec.views]
-        files += [d / DEPTH_FILE, d / LIT_FILE] + ([d / PROJ_COORD_FILE] if spec.with_phase else [])
+        coord = spec.with_phase or spec.calibration
+        files += [d / DEPTH_FILE, d / LIT_FILE] + ([d / PROJ_COORD_FILE] if coord else [])
         files += [d / FOOTPRINT_FILE] if (d / FOOTPRINT_FILE).is_file() else []
         for p in files:
             try:
@@ -313,6 +327,21 @@ class FringeDataset(torch.utils.data.Dataset):
             if spec.reference
             else None
         )
+        self.calibration = (
+            torch.from_numpy(
+                triangulation_maps(
+                    m.rig,
+                    spec.views,
+                    spec.height_px,
+                    spec.width_px,
+                    spec.period_px,
+                    spec.step,
+                    spec.n_steps,
+                )
+            )
+            if spec.calibration
+            else None
+        )
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -321,8 +350,9 @@ class FringeDataset(torch.utils.data.Dataset):
         """fringes (S,H,W) in [-1,1]; depth (1,H,W) network units; depth_mm (1,H,W); lit (S,H,W)
         and valid (1,H,W) as 0/1 floats; the metric subsets shadowed, unlit, first_unlit and
         first_shadowed (1,H,W, 0/1, see odmv.data.subsets); scene_id and family; with stacks also
-        fringe_stack (S,K,H,W) in [-1,1] and projector_coord (S,H,W) in projector px (NaN where
-        unlit)."""
+        fringe_stack (S,K,H,W) in [-1,1]; with stacks or calibration projector_coord (S,H,W) in
+        projector px (NaN where unlit); with calibration the rig's triangulation maps
+        (S,6,H,W, odmv.geometry) as ``calibration``."""
         if self.cache is not None and not self.spec.with_stacks:
             raw = self.cache.get(i)
         else:
@@ -344,9 +374,12 @@ class FringeDataset(torch.utils.data.Dataset):
             sample["available"] = torch.ones(len(self.spec.views))
             base = sample.get("inputs", sample["fringes"])
             sample["inputs"] = with_availability(base, sample["available"])
-        if self.spec.with_phase:
+        if self.spec.with_phase or self.spec.calibration:
             sample["phase_target"] = torch.from_numpy(np.array(raw["phase_target"], np.float32))
         if self.spec.with_stacks:
             sample["fringe_stack"] = self.norm.fringes(torch.from_numpy(raw["fringe_stack"]))
-            sample["projector_coord"] = torch.from_numpy(raw["projector_coord"])
+        if self.spec.with_stacks or self.spec.calibration:
+            sample["projector_coord"] = torch.from_numpy(np.array(raw["projector_coord"]))
+        if self.calibration is not None:
+            sample["calibration"] = self.calibration
         return sample

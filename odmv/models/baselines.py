@@ -29,6 +29,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from odmv.models.blocks import Conv2d, Float32Conv2d, Float32ConvTranspose2d, set_norm
+from odmv.models.phase import PhaseHead2d, check_head
 
 
 def _check(x: torch.Tensor, levels: int, name: str) -> None:
@@ -97,27 +98,58 @@ def _widths(base: int) -> list[int]:
     return [base * 2**i for i in range(5)]
 
 
+def _phase_head(ch: int, in_channels: int, n_views, head, orders) -> PhaseHead2d | None:
+    """With ``head=phase``, every view's phase, order and confidence from the last
+    full-resolution features (:mod:`odmv.models.phase`); None with the depth head. ``n_views``
+    (None: ``in_channels``) differs from the input channels when the input carries more than
+    the fringe per view (odmv.data.reference)."""
+    head, orders = check_head(head, orders)
+    return PhaseHead2d(ch, n_views or in_channels, orders) if head == "phase" else None
+
+
+def _with_phase(out: dict, phase: PhaseHead2d | None, features: torch.Tensor) -> dict:
+    return out if phase is None else out | phase(features)
+
+
 class UNet(nn.Module):
     LOSS_TERMS = ()  # odmv.losses.OPTIONAL_TERMS its outputs have
 
-    def __init__(self, in_channels: int = 1, base_width: int = 32, dropout: float = 0.5):
+    def __init__(
+        self,
+        in_channels: int = 1,
+        base_width: int = 32,
+        dropout: float = 0.5,
+        n_views: int | None = None,
+        head: str | None = None,
+        orders: int | None = None,
+    ):
         super().__init__()
         widths = _widths(base_width)
         self.encoder = _UEncoder(in_channels, widths, dropout)
         self.decoder = _UDecoder(widths)
         self.head = Float32Conv2d(widths[0], 1, 1)
+        self.phase = _phase_head(widths[0], in_channels, n_views, head, orders)
         self.levels = len(widths) - 1
 
     def forward(self, x):
         _check(x, self.levels, "UNet")
         bottom, skips = self.encoder(x)
-        return {"depth": self.head(self.decoder(bottom, skips)[-1])}
+        f = self.decoder(bottom, skips)[-1]
+        return _with_phase({"depth": self.head(f)}, self.phase, f)
 
 
 class HNet(nn.Module):
     LOSS_TERMS = ("aux",)  # side outputs, deeply supervised
 
-    def __init__(self, in_channels: int = 1, base_width: int = 32, dropout: float = 0.5):
+    def __init__(
+        self,
+        in_channels: int = 1,
+        base_width: int = 32,
+        dropout: float = 0.5,
+        n_views: int | None = None,
+        head: str | None = None,
+        orders: int | None = None,
+    ):
         super().__init__()
         widths = _widths(base_width)
         n = len(widths) - 1
@@ -136,13 +168,15 @@ class HNet(nn.Module):
                 else nn.Identity()
             )
         self.fuse = Float32Conv2d(len(tap_widths), 1, 1)
+        self.phase = _phase_head(widths[0], in_channels, n_views, head, orders)
 
     def forward(self, x):
         _check(x, self.levels, "HNet")
         bottom, skips = self.encoder(x)
         feats = [bottom] + self.decoder(bottom, skips)
         sides = [up(tap(f)) for f, tap, up in zip(feats, self.taps, self.ups, strict=True)]
-        return {"depth": self.fuse(torch.cat(sides, 1)), "aux": sides}
+        out = {"depth": self.fuse(torch.cat(sides, 1)), "aux": sides}
+        return _with_phase(out, self.phase, feats[-1])
 
 
 class _MultiLevelConv(nn.Module):
@@ -214,7 +248,14 @@ class UHRNet(nn.Module):
     LOSS_TERMS = ()
 
     def __init__(
-        self, in_channels: int = 1, base_width: int = 64, dropout: float = 0.3, norm: str = "batch"
+        self,
+        in_channels: int = 1,
+        base_width: int = 64,
+        dropout: float = 0.3,
+        norm: str = "batch",
+        n_views: int | None = None,
+        head: str | None = None,
+        orders: int | None = None,
     ):
         super().__init__()
         w = _widths(base_width)
@@ -235,6 +276,7 @@ class UHRNet(nn.Module):
             ]
         )
         self.head = Float32Conv2d(w[0], 1, 1)
+        self.phase = _phase_head(w[0], in_channels, n_views, head, orders)
         set_norm(self, norm)
 
     def forward(self, x):
@@ -248,7 +290,7 @@ class UHRNet(nn.Module):
         fused = [f(skips) for f in self.fusion] + [skips[3]]
         for up, conv, skip in zip(self.ups, self.convs, reversed(fused), strict=True):
             x = conv(torch.cat([up(x), skip], 1))
-        return {"depth": self.head(x)}
+        return _with_phase({"depth": self.head(x)}, self.phase, x)
 
 
 class MTLNet(nn.Module):
@@ -260,6 +302,8 @@ class MTLNet(nn.Module):
         base_width: int = 32,
         dropout: float = 0.5,
         n_views: int | None = None,
+        head: str | None = None,
+        orders: int | None = None,
     ):
         super().__init__()
         widths = _widths(base_width)
@@ -268,13 +312,17 @@ class MTLNet(nn.Module):
         self.depth_decoder = _UDecoder(widths)
         self.phase_decoder = _UDecoder(widths)
         self.depth_head = Float32Conv2d(widths[0], 1, 1)
-        # (sin, cos) of each view's phase; n_views differs from in_channels when the input
-        # carries more than the fringe per view (odmv.data.reference)
-        self.phase_head = nn.Conv2d(widths[0], 2 * (n_views or in_channels), 1)
+        # (sin, cos) of each view's phase; with head=phase also its order and confidence, all
+        # from the phase decoder
+        self.phase_head = _phase_head(widths[0], in_channels, n_views, head, orders) or nn.Conv2d(
+            widths[0], 2 * (n_views or in_channels), 1
+        )
 
     def forward(self, x):
         _check(x, self.levels, "MTLNet")
         bottom, skips = self.encoder(x)
         depth = self.depth_head(self.depth_decoder(bottom, skips)[-1])
-        phase = torch.tanh(self.phase_head(self.phase_decoder(bottom, skips)[-1]))
-        return {"depth": depth, "phase": phase}
+        phase = self.phase_head(self.phase_decoder(bottom, skips)[-1])
+        if isinstance(self.phase_head, PhaseHead2d):
+            return {"depth": depth} | phase
+        return {"depth": depth, "phase": torch.tanh(phase)}

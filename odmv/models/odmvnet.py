@@ -55,6 +55,7 @@ from odmv.models.blocks import (
     stage3d,
     view_mean,
 )
+from odmv.models.phase import PhaseHead3d, check_head
 
 LEVELS = 4  # encoder stages; the bottleneck sits at 1 / 2**LEVELS
 
@@ -151,7 +152,9 @@ class ODMVNet(nn.Module):
     (:class:`odmv.models.blocks.OcclusionAwareFusion`). ``availability`` (beyond the paper;
     None: off): the input carries each view's availability after its channels
     (:mod:`odmv.data.views`); a missing view's input is zeroed and the fusion gives it no
-    weight, so its images cannot move the depth."""
+    weight, so its images cannot move the depth. ``head`` (beyond the paper): "depth" (None,
+    the paper) or "phase", every view's phase, fringe order (``orders`` classes) and confidence
+    besides the regressed depth (:mod:`odmv.models.phase`)."""
 
     LOSS_TERMS = ("aux", "view", "occlusion")  # the full model; a Table I row may lack some
 
@@ -177,8 +180,11 @@ class ODMVNet(nn.Module):
         gate_init: str | None = None,
         fusion_bound: float | None = None,
         availability: bool | None = None,
+        head: str | None = None,
+        orders: int | None = None,
     ):
         super().__init__()
+        head, orders = check_head(head, orders)
         self.availability = bool(availability)
         if ablation not in ABLATION_ROWS:
             raise ValueError(f"ablation {ablation!r} unknown; choose from {list(ABLATION_ROWS)}")
@@ -243,6 +249,8 @@ class ODMVNet(nn.Module):
             else None
         )
         self.heads = nn.ModuleList(RegressionHead(c) for c in head_ch)
+        # head=phase: every view's phase, order and confidence from Main's per-view features
+        self.phase_head = PhaseHead3d(head_ch[0], head_ch[0], orders) if head == "phase" else None
         self.ssvr = (
             nn.Sequential(
                 conv_bn_act(head_ch[0], head_ch[0] // 2), nn.Conv3d(head_ch[0] // 2, 1, 1)
@@ -306,14 +314,21 @@ class ODMVNet(nn.Module):
             if mask is not None:  # the level-0 mask, repeated to full resolution
                 mask = F.interpolate(mask, scale_factor=(1, 2, 2), mode="nearest")
             heads_in = [(f, mask), (stages[0], masks[0]), (stages[1], masks[1])]
-        outs = []
+        fused = []
         for k, (feat, mask) in enumerate(heads_in):
             if self.fusion is not None:
-                fused = self.fusion[k](feat, mask, available)
+                fused.append(self.fusion[k](feat, mask, available))
             else:
-                fused = view_mean(feat, available)
-            outs.append(self.heads[k](fused))
+                fused.append(view_mean(feat, available))
+        outs = [head(f) for head, f in zip(self.heads, fused, strict=True)]
         result = {"depth": outs[0], "aux": outs[1:]}
+        if self.phase_head is not None:
+            # Main's fusion weights over the views become part of their confidences (as logits)
+            logits = None
+            if self.fusion is not None:
+                blend = self.fusion[0].attend(*heads_in[0], available)[1][:, 0]
+                logits = torch.log(blend.clamp_min(1e-6))
+            result |= self.phase_head(heads_in[0][0], fused[0], logits)
         if self.ssvr is not None:
             result["views"] = torch.tanh(self.ssvr(heads_in[0][0])[:, 0])
         if self.ocd is not None:

@@ -14,4 +14,5 @@ VERBS = {
     "ocd": "ocd",
     "coverage": "coverage",
     "symmetry": "symmetry",
+    "phase": "phase",
 }

@@ -23,7 +23,7 @@ import torch
 from odmv.checkpoint import CheckpointError
 from odmv.losses import resize_target
 from odmv.models.blocks import OcclusionAwareFusion
-from odmv.module import load_module, net_input
+from odmv.module import load_module
 from odmv.study.records import read_only
 
 HEADS = ("Main", "Aux1", "Aux2")
@@ -89,7 +89,7 @@ def main(argv: list[str]) -> int:
         with torch.no_grad():
             for batch in dm.test_dataloader():
                 blends.clear()
-                out = module(net_input(batch))
+                out = module.run(batch)
                 if "occlusion" not in out:
                     print(f"{path}: this model has no occlusion detector")
                     break

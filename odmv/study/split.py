@@ -19,7 +19,6 @@ import numpy as np
 import torch
 
 from odmv.io.atomic import write_npz
-from odmv.module import net_input
 from odmv.study.records import run_data
 
 
@@ -29,7 +28,7 @@ def split_predictions(run: Path, split: str) -> tuple[Path, float]:
     ids, preds, depths = [], [], []
     with torch.no_grad():
         for batch in dm._loader(split, shuffle=False):
-            preds.append(module.depth_mm(module(net_input(batch)))[:, 0].numpy())
+            preds.append(module.depth_mm(module.run(batch))[:, 0].numpy())
             depths.append(batch["depth_mm"][:, 0].numpy())
             ids.extend(batch["scene_id"])
     pred, depth = np.concatenate(preds), np.concatenate(depths)
