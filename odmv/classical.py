@@ -260,7 +260,7 @@ def classical_row(
         pred = torch.from_numpy(np.nan_to_num(depth, nan=0.0)[None, None].astype(np.float32))
         ok = torch.from_numpy(np.isfinite(depth)[None, None]).float()
         subsets = {k: torch.from_numpy(raw[k][None]).float() for k in MASKS}
-        masks = subset_masks({"valid": torch.isfinite(gt).float()} | subsets)
+        masks = subset_masks({"valid": torch.isfinite(gt).float(), "depth_mm": gt} | subsets)
         reconstructed = {k: mask * ok for k, mask in masks.items()}
         row = {"scene": sid, "family": families.get(sid, "")}
         for k, v in per_image_subset_errors(pred, gt, reconstructed).items():

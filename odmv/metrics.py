@@ -10,7 +10,9 @@ Subsets (odmv.data.subsets): ``all`` valid pixels, ``shadowed`` (inside some pro
 footprint, unlit by one that covers it), ``unlit`` (lit by no projector), ``first_unlit``
 (unlit by the first projector, lit by another) and ``first_shadowed`` (of those, inside the
 first projector's footprint), all from the dataset's ground truth of every
-projector, so models with different inputs compare.
+projector, so models with different inputs compare; and the height bands ``h0_2``, ``h2_8`` and
+``h8_up`` (mm above the base plane, the farthest valid depth of each image): where in height
+the error lies (tall parts are what a net that regresses shape places too low).
 """
 
 from __future__ import annotations
@@ -20,7 +22,16 @@ from torchmetrics import Metric
 
 from odmv.data.subsets import MASKS
 
-SUBSETS = ("all", *MASKS)
+#: height bands (mm above the base plane): name -> (lowest, highest)
+HEIGHT_BANDS_MM = {"h0_2": (0.0, 2.0), "h2_8": (2.0, 8.0), "h8_up": (8.0, float("inf"))}
+SUBSETS = ("all", *MASKS, *HEIGHT_BANDS_MM)
+
+
+def height_bands(depth_mm: torch.Tensor) -> dict[str, torch.Tensor]:
+    """:data:`HEIGHT_BANDS_MM` masks (B x 1 x H x W, 0/1) of depth maps (mm, NaN: none)."""
+    plane = depth_mm.nan_to_num(float("-inf")).amax((-2, -1), keepdim=True)
+    height = plane - depth_mm  # NaN where there is no depth: in no band
+    return {k: ((height >= lo) & (height < hi)).float() for k, (lo, hi) in HEIGHT_BANDS_MM.items()}
 
 
 def _masked_sums(pred_mm, target_mm, mask) -> tuple[torch.Tensor, ...]:

@@ -26,7 +26,13 @@ from odmv.data.subsets import MASKS
 from odmv.io.atomic import write_csv, write_npz
 from odmv.io.runfolder import PREDICTIONS, SCENES_CSV
 from odmv.losses import LossWeights, composite_loss
-from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_results
+from odmv.metrics import (
+    SUBSETS,
+    DepthErrors,
+    height_bands,
+    per_image_subset_errors,
+    subset_results,
+)
 from odmv.models.blocks import split_availability
 from odmv.models.phase import fuse, has_phase_head
 
@@ -323,9 +329,11 @@ def batched(sample: dict) -> dict:
 
 
 def subset_masks(batch: dict) -> dict[str, torch.Tensor]:
-    """Metric pixel masks (B x 1 x H x W) from the batch's ground truth: odmv.data.subsets."""
+    """Metric pixel masks (B x 1 x H x W) from the batch's ground truth: odmv.data.subsets and
+    the height bands of odmv.metrics."""
     valid = batch["valid"]
-    return {"all": valid} | {k: batch[k] * valid for k in MASKS}
+    masks = {"all": valid} | {k: batch[k] * valid for k in MASKS}
+    return masks | height_bands(batch["depth_mm"])
 
 
 def _gather(items: list) -> list:

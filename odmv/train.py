@@ -181,6 +181,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
             model=cfg.model.name,
             views=list(dm.spec.views),
             ablation=cfg.get("ablation"),
+            head=cfg.get("head") or "depth",
             seed=cfg.seed,
             # floating-point sums split by thread count: the same seed on another count is
             # another run (experiments/results/accuracy/notebook.md, "Repeatability")

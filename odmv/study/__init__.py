@@ -15,4 +15,5 @@ VERBS = {
     "coverage": "coverage",
     "symmetry": "symmetry",
     "phase": "phase",
+    "captures": "captures",
 }

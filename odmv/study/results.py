@@ -49,6 +49,8 @@ class Run:
     def matches(self, row: Row) -> bool:
         if (self.model, self.n_views) != (row.model, row.views):
             return False
+        if self.metrics.get("head", "depth") != row.head:  # records before heads were depth
+            return False
         if row.width is not None and self.width != row.width:
             return False
         return row.ablation is None or self.metrics.get("ablation") == row.ablation

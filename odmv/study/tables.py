@@ -22,6 +22,7 @@ class Row:
     paper: tuple[float, float, float] | None = None  # MAE, MSE, RMSE as the paper prints them
     width: int | None = None  # a row of one base width; None: the runs no such row claims
     improvement_pct: float | None = None  # ODMV-Net's MAE reduction on this row, the paper's
+    head: str = "depth"  # the paper's rows regress depth; head=phase runs are rows of their own
 
 
 #: Table I's cumulative module rows (conf/ablation/, odmv.models.ABLATION_ROWS): key, label and
