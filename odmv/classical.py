@@ -156,11 +156,17 @@ class Capture:
         return f"{self.steps}-step, {fringes}, {self.images} images"
 
     @property
+    def key(self) -> str:
+        """What its records say (``capture``); the full row's records have none."""
+        return f"{self.steps}x{self.frequencies}"
+
+    @property
     def name(self) -> str:
-        return f"classical-{self.steps}x{self.frequencies}"
+        return f"classical-{self.key}"
 
 
-#: The capture curve: images per projector from the network's one to the full sequences
+#: The capture curve: images per projector from the network's one to the full sequences (the
+#: last is the classical row itself, tested)
 CAPTURES = (
     # one image's views disagree more than the sequences' (its phase is filtered over a
     # period): its fusion keeps views within 0.3 mm of each other (0.1 mm cuts its coverage to
@@ -178,46 +184,75 @@ CAPTURES = (
 def capture_depth(stack, m, capture: Capture, camera, projectors, views) -> np.ndarray:
     """One scene's depth (mm, NaN where rejected) from ``capture``'s images of its full
     sequences (V, F, N, H, W in the manifest's frequency order)."""
-    h, w = stack.shape[-2:]
     n_steps = m.fringe.steps
     if n_steps % capture.steps:
         raise DataError(f"classical: {capture.steps} steps do not divide the dataset's {n_steps}")
     f_net = m.fringe.resolve_frequency(m.fringe.train_frequency)
     coarse = int(np.argmax(m.fringe.periods_px))
-    period = m.fringe.periods_px[f_net]
-    step0 = m.fringe.train_step
+    period, step0 = m.fringe.periods_px[f_net], m.fringe.train_step
+    if capture.images == 1:
+        return single_shot_depth(stack[:, f_net, step0], period, step0, n_steps, m.rig, views)
     picked = [(step0 + k * n_steps // capture.steps) % n_steps for k in range(capture.steps)]
-    ref = triangulation_maps(m.rig, views, h, w, period, step0, n_steps)[:, 0].astype(np.float64)
+    origin = 2 * np.pi * step0 / n_steps  # the steps picked start at step0: its phase offset
+    ref = _reference_px(m.rig, views, stack.shape[-2:], period, step0, n_steps)
     depths, mods = [], []
     for v, proj in enumerate(projectors):
         if capture.frequencies == 2:
             periods = [m.fringe.periods_px[coarse], period]  # projector px
             images = stack[v][[coarse, f_net]][:, picked]
-            # the steps picked start at step0: shift their phases back to step 0's
-            u, mod, ok, _ = decode_phase(
-                images, periods, MIN_MODULATION, 1, 2 * np.pi * step0 / n_steps
-            )
+            u, mod, ok, _ = decode_phase(images, periods, MIN_MODULATION, 1, origin)
         else:
-            if capture.steps == 1:
-                ref_rad = 2 * np.pi * (ref[v] / period + step0 / n_steps)
-                # the image axis the fringe's phase runs along
-                axis = int(
-                    np.abs(np.diff(ref[v], axis=1)).mean() > np.abs(np.diff(ref[v], axis=0)).mean()
-                )
-                dphi, mod = demodulate(
-                    stack[v, f_net, step0], ref_rad, period_in_camera_px(period, camera, proj), axis
-                )
-            else:
-                phase, mod = wrapped_phase(stack[v, f_net][picked], 1, 2 * np.pi * step0 / n_steps)
-                dphi = np.angle(np.exp(1j * (phase - 2 * np.pi * ref[v] / period)))
-            ok = mod >= MIN_MODULATION
-            dphi = anchor_to_plane(unwrap_spatial(dphi, mod, ok), ok)
-            u = ref[v] + period * dphi / (2 * np.pi)
-            ok &= np.isfinite(u)
-        depth = triangulate_depth(np.nan_to_num(u), camera, proj)
-        depths.append(np.where(ok & np.isfinite(depth), depth, np.nan))
+            phase, mod = wrapped_phase(stack[v, f_net][picked], 1, origin)
+            u, ok = _anchored(phase - 2 * np.pi * ref[v] / period, mod, ref[v], period)
+        depths.append(_triangulated(u, ok, camera, proj))
         mods.append(mod)
     return fuse_views(np.stack(depths), np.stack(mods), capture.tolerance_mm, capture.edge_mm)
+
+
+def single_shot_depth(
+    images: np.ndarray, period_px: float, step: int, n_steps: int, rig, views
+) -> np.ndarray:
+    """Depth (mm, NaN where rejected) from one fringe image per projector (V, H, W; linear
+    intensity) of period ``period_px`` (projector px) at phase step ``step`` of ``n_steps``:
+    Fourier-transform profilometry against the reference plane's carrier
+    (:func:`odmv.fpp.demodulate`), spatially unwrapped, the fringe order anchored to the plane,
+    triangulated and fused as :data:`CAPTURES`' first row is."""
+    capture = CAPTURES[0]
+    h, w = images.shape[-2:]
+    camera = rig.camera_at(w, h)
+    ref = _reference_px(rig, views, (h, w), period_px, step, n_steps)
+    depths, mods = [], []
+    for v, name in enumerate(views):
+        proj = rig.projectors()[name]
+        carrier = 2 * np.pi * (ref[v] / period_px + step / n_steps)
+        # the image axis the fringe's phase runs along
+        axis = int(np.abs(np.diff(ref[v], axis=1)).mean() > np.abs(np.diff(ref[v], axis=0)).mean())
+        period_camera = period_in_camera_px(period_px, camera, proj)
+        dphi, mod = demodulate(images[v], carrier, period_camera, axis)
+        u, ok = _anchored(dphi, mod, ref[v], period_px)
+        depths.append(_triangulated(u, ok, camera, proj))
+        mods.append(mod)
+    return fuse_views(np.stack(depths), np.stack(mods), capture.tolerance_mm, capture.edge_mm)
+
+
+def _reference_px(rig, views, size, period_px, step, n_steps) -> np.ndarray:
+    """Each view's projector coordinate on the reference plane (V, H, W; projector px)."""
+    maps = triangulation_maps(rig, views, *size, period_px, step, n_steps)
+    return maps[:, 0].astype(np.float64)
+
+
+def _anchored(dphi, mod, ref, period_px):
+    """A phase difference to the plane (rad, wrapped) -> the projector coordinate (px), unwrapped
+    spatially with its order anchored to the plane, and the pixels kept."""
+    ok = mod >= MIN_MODULATION
+    dphi = anchor_to_plane(unwrap_spatial(np.angle(np.exp(1j * dphi)), mod, ok), ok)
+    u = ref + period_px * dphi / (2 * np.pi)
+    return u, ok & np.isfinite(u)
+
+
+def _triangulated(u, ok, camera, proj) -> np.ndarray:
+    depth = triangulate_depth(np.nan_to_num(u), camera, proj)
+    return np.where(ok & np.isfinite(depth), depth, np.nan)
 
 
 def classical_row(

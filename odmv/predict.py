@@ -28,7 +28,7 @@ from omegaconf import DictConfig
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
 from odmv.calibration import load_calibration
-from odmv.classical import decode_views, fused_depth, twin_options
+from odmv.classical import decode_views, fused_depth, single_shot_depth, twin_options
 from odmv.cli import run_app
 from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.data.dataset import DataError, SampleSpec, check_spec, load_scene
@@ -263,14 +263,14 @@ def write_preview(path: Path, depth_mm: np.ndarray) -> Path:
 
 def predict(cfg: DictConfig) -> list[dict[str, Path]]:
     """Depth, preview and point cloud of every scene ``cfg.input`` names; returns their paths."""
-    if cfg.method not in ("net", "psp"):
-        raise ValueError(f"method: {cfg.method!r} unknown; choose net or psp")
+    if cfg.method not in ("net", "psp", "ftp"):
+        raise ValueError(f"method: {cfg.method!r} unknown; choose net, psp or ftp")
     if cfg.method == "net" and not cfg.ckpt_path:
         raise ValueError("ckpt_path: give a checkpoint or model.onnx (or method=psp)")
     predictor = load_predictor(cfg.ckpt_path) if cfg.method == "net" else None
     views = predictor.views if predictor else list(VIEW_NAMES)
-    if predictor is not None:
-        names = list(views)
+    if predictor is not None or cfg.method == "ftp":
+        names = list(cfg.get("views") or views)
     else:
         options = PspOptions.from_cfg(cfg.psp)
         names = [options.stem(v, 0, 0, 1) for v in (cfg.get("views") or VIEW_NAMES)]
@@ -315,6 +315,16 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
                 if "weights" in result:  # head=phase: each view's share of the depth
                     write_weights(out, result["weights"][0], predictor.views)
                 period, used = predictor.input_spec.get("period_px"), predictor.views
+            elif cfg.method == "ftp":
+                rig = scene.manifest.rig if scene.manifest else default_rig
+                used = list(cfg.get("views") or (scene.manifest.views if scene.manifest else views))
+                images, period = single_shot_images(scene, cfg, reader, used)
+                if rig is None:
+                    raise DataError(f"{scene.folder}: method=ftp: {NO_RIG}")
+                m = scene.manifest or load_manifest(cfg.manifest)
+                step, n_steps = m.fringe.train_step, m.fringe.steps
+                depth = single_shot_depth(images, period, step, n_steps, rig, used)
+                depth = depth.astype(np.float32)
             else:
                 rig = scene.manifest.rig if scene.manifest else default_rig
                 seq = read_sequences(scene, reader, cfg, rig)
@@ -441,6 +451,26 @@ def write_phases(out: Path, views: list[str], decoded: list, options: PspOptions
             )
         )
     return written
+
+
+def single_shot_images(scene: Scene, cfg, reader: ImageReader, views: list[str]):
+    """The one fringe image per view that ``method=ftp`` decodes (V x H x W, linear intensity)
+    and its period (projector px): a dataset scene's network image, or a folder's images of
+    the fringe of ``manifest=``'s network image."""
+    m = scene.manifest
+    if m is None and not cfg.manifest:
+        raise DataError(
+            f"{scene.folder}: method=ftp needs the fringe's period and phase step: give "
+            "manifest=DATASET, a dataset whose network image the captures repeat"
+        )
+    fringe = (m or load_manifest(cfg.manifest)).fringe
+    frequency = fringe.resolve_frequency(fringe.train_frequency)
+    if m is not None:
+        spec = SampleSpec(tuple(views), m.height_px, m.width_px, frequency, fringe.train_step)
+        images = np.array(load_scene(m, scene.name, spec)["fringes"], np.float64)
+    else:
+        images = reader.read(scene.folder, views, None).astype(np.float64)
+    return images, fringe.periods_px[frequency]
 
 
 def write_weights(out: Path, weights: np.ndarray, views: list[str]) -> Path:

@@ -22,6 +22,7 @@ from odmv.cli import run_app
 from odmv.config import CONF_DIR
 from odmv.io.atomic import write_csv, write_text
 from odmv.metrics import subset_suffix
+from odmv.study.captures import report_section
 from odmv.study.claims import claims_markdown
 from odmv.study.figures import FIGURE_SCENES, bar_chart, comparison_figures
 from odmv.study.results import (
@@ -269,6 +270,7 @@ def write_report(
         lines.append(f"![{TITLES[name]}](bars_{name}.png)")
         lines.append("")
     lines += improvements_markdown(tables["table2"])
+    lines += report_section(runs, tables["table2"], out)
     lines += claims_markdown(tables)
     shares = []  # properties of the test split, alike in every run that has them
     for k, name in ({"shadowed": "shadowed", "unlit": "unlit"} | FIRST_VIEW).items():

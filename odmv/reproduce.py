@@ -33,7 +33,7 @@ import numpy as np
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig, OmegaConf
 
-from odmv.classical import classical_row
+from odmv.classical import CAPTURES, classical_row
 from odmv.cli import run_app
 from odmv.config import CONF_DIR, compose_train
 from odmv.io.atomic import write_json, write_text
@@ -402,14 +402,17 @@ def reproduce(cfg: DictConfig) -> Path:
         return out
     folders = [j.result() for j in jobs if j.table]
     if cfg.classical:
-        classical, kept = runs_dir / CLASSICAL_DIR, records / CLASSICAL_DIR
-        if not finished(classical, kept):
-            print(
-                "classical reference (phase shifting, 4 projectors) on the test scenes", flush=True
-            )
-            classical_row(dm.root, classical, resolution=dm.resolution)
-        keep(classical, kept)
-        folders.append(finished(classical, kept))
+        # the full sequences, then the same pipeline on fewer images per projector down to the
+        # one a network sees (the last capture is the full row itself)
+        for capture in (None, *CAPTURES[:-1]):
+            name = CLASSICAL_DIR if capture is None else capture.name
+            classical, kept = runs_dir / name, records / name
+            if not finished(classical, kept):
+                what = capture.label if capture else "phase shifting, full sequences"
+                print(f"classical reference ({what}, 4 projectors) on the test scenes", flush=True)
+                classical_row(dm.root, classical, resolution=dm.resolution, capture=capture)
+            keep(classical, kept)
+            folders.append(finished(classical, kept))
     write_report(folders, out, protocol=protocol)
     minutes = (time.perf_counter() - t0) / 60
     print(f"report: {out / 'tables.md'} (this call: {minutes:.1f} min)")

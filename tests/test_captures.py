@@ -6,10 +6,14 @@ import dataclasses
 
 import numpy as np
 import pytest
+from helpers import compose_config
 
 from odmv.classical import CAPTURES, Capture, classical_row
+from odmv.data.dataset import DataError
 from odmv.fpp import demodulate
+from odmv.io.exr import read_channel, write_exr
 from odmv.io.manifest import FringeSpec
+from odmv.predict import predict
 from odmv.sim.writer import SimSettings, simulate
 
 
@@ -54,3 +58,26 @@ def test_fewer_images_cost_accuracy_or_coverage(twin_240, tmp_path):
     ftp = got[CAPTURES[0]]
     assert ftp["test/mae_mm"] > 3 * both["test/mae_mm"] and ftp["test/coverage"] > 0.3
     assert ftp["test/mae_mm"] < 1.0  # sub-mm from one image per projector
+
+
+@pytest.mark.slow
+def test_predict_ftp_decodes_the_one_network_image_per_view(twin_240, tmp_path):
+    scene = twin_240 / "scenes" / "000004"
+    cfg = compose_config(
+        "predict",
+        ["method=ftp", f"input={scene}", f"out={tmp_path / 'a'}", f"paths.output_dir={tmp_path}"],
+    )
+    depth = read_channel(predict(cfg)[0]["depth"], "Z")
+    truth = read_channel(scene / "depth.exr", "Z")
+    kept = np.isfinite(depth)
+    assert 0.3 < kept.mean() and np.median(np.abs(depth - truth)[kept]) < 0.3  # mm
+    # the same images as a folder of <view>.exr, with the dataset naming their fringe
+    folder = tmp_path / "capture"
+    for v in ("right", "down", "left", "up"):
+        image = read_channel(scene / "fringe" / f"{v}_f1_s00.exr", "Y")
+        write_exr(folder / f"{v}.exr", {"Y": image})
+    base = ["method=ftp", f"input={folder}", f"paths.output_dir={tmp_path}"]
+    cfg = compose_config("predict", [*base, f"out={tmp_path / 'b'}", f"manifest={twin_240}"])
+    np.testing.assert_array_equal(read_channel(predict(cfg)[0]["depth"], "Z"), depth)
+    with pytest.raises(DataError, match="method=ftp needs the fringe's period"):
+        predict(compose_config("predict", [*base, f"out={tmp_path / 'c'}"]))

@@ -94,15 +94,8 @@ def _on_pixels(run: Path, pixels: dict[str, np.ndarray]) -> float:
     return float(np.nanmean(err))
 
 
-def markdown(rows: list[dict], command: str) -> str:
+def table_lines(rows: list[dict]) -> list[str]:
     lines = [
-        "# MAE against images captured per projector",
-        "",
-        f"`{command}`",
-        "",
-        "Errors on the test split's pixels each method reconstructs (a network answers every "
-        "pixel: coverage 100 %); seeds averaged for networks.",
-        "",
         "| method | images per projector | seeds | MAE (mm) | MAE shadowed (mm) "
         "| MAE above 8 mm (mm) | coverage (%) | MAE on the 24-image classical's pixels (mm) |",
         "|---|---:|---:|---:|---:|---:|---:|---:|",
@@ -113,7 +106,50 @@ def markdown(rows: list[dict], command: str) -> str:
             f"| {r['method']} | {r['images']} | {r['seeds']} | {' | '.join(cells)} | "
             f"{100 * r['coverage']:.1f} | {_mm(r['mae_mm_classical_pixels'])} |"
         )
-    return "\n".join(lines) + "\n"
+    return lines
+
+
+def markdown(rows: list[dict], command: str) -> str:
+    lines = ["# MAE against images captured per projector", "", f"`{command}`", "", NOTE, ""]
+    return "\n".join(lines + table_lines(rows)) + "\n"
+
+
+def report_section(runs, cells, out: Path) -> list[str]:
+    """The reproduction report's section: every classical run of ``runs`` (odmv.study.results)
+    by the images it decoded (the full row decodes the last capture's), and each Table II
+    net's row (``cells``) at one image; writes ``out/captures.png``. Nothing without captures."""
+    classical = [r for r in runs if r.model == "classical"]
+    if len(classical) < 2:
+        return []
+    rows = []
+    for r in classical:
+        images = r.metrics.get("images_per_projector", CAPTURES[-1].images)
+        label = next((c.label for c in CAPTURES if c.images == images), f"{images} images")
+        row = {"method": f"classical, {label}", "images": images, "seeds": 1}
+        rows.append(row | {k: float(r.metrics.get(f"test/{k}", np.nan)) for k in COLUMNS})
+    for c in cells:
+        if c.runs and c.row.model != "classical":
+            row = {"method": c.row.label, "images": 1, "seeds": len(c.runs), "coverage": 1.0}
+            rows.append(row | {k: c.stat(f"test/{k}")[0] for k in COLUMNS if k != "coverage"})
+    figure(out / "captures.png", rows)
+    return [
+        "### Classical phase shifting against images captured per projector",
+        "",
+        NOTE + " The networks see one image per projector.",
+        "",
+        *table_lines(rows),
+        "",
+        "![MAE and coverage against images captured per projector](captures.png)",
+        "",
+    ]
+
+
+NOTE = (
+    "Errors on the test split's pixels each method reconstructs (a network answers every "
+    "pixel: coverage 100 %); seeds averaged for networks. One frequency: the fringe order is "
+    "anchored to the base plane, a period off on regions wholly on parts taller than half a "
+    "period (the above-8-mm column)."
+)
 
 
 def _mm(value: float) -> str:

@@ -51,6 +51,8 @@ class Run:
             return False
         if self.metrics.get("head", "depth") != row.head:  # records before heads were depth
             return False
+        if self.metrics.get("capture") != row.capture:  # a classical row on fewer images
+            return False
         if row.width is not None and self.width != row.width:
             return False
         return row.ablation is None or self.metrics.get("ablation") == row.ablation
