@@ -127,9 +127,11 @@ def test_every_net_trains_with_the_phase_head(phase_runs, model):
 
 
 @pytest.mark.slow
-def test_a_phase_head_net_evaluates_predicts_and_exports(phase_runs, tiny_dataset, tmp_path):
-    run, metrics = phase_runs["odmvnet"]
+@pytest.mark.parametrize("model", ["odmvnet", "mtlnet"])
+def test_a_phase_head_net_evaluates_predicts_and_exports(model, phase_runs, tiny_dataset, tmp_path):
+    run, metrics = phase_runs[model]
     ckpt = metrics["best_checkpoint"]
+    views = list(load_module(ckpt).hparams.views)
     cfg = compose_config(
         "evaluate",
         [f"ckpt_path={ckpt}", f"paths.output_dir={tmp_path / 'eval'}", "figures=1"]
@@ -155,8 +157,6 @@ def test_a_phase_head_net_evaluates_predicts_and_exports(phase_runs, tiny_datase
         )
         (written,) = predict(cfg)
         depths[name] = read_channel(written["depth"], "Z")
-        weights = [
-            read_channel(tmp_path / name / "weights.exr", c) for c in (*VIEW_NAMES, "regressed")
-        ]
+        weights = [read_channel(tmp_path / name / "weights.exr", c) for c in (*views, "regressed")]
         np.testing.assert_allclose(np.sum(weights, 0), 1.0, atol=1e-5)
     assert np.abs(depths["onnx"] - depths["ckpt"]).max() < 1e-3

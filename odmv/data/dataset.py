@@ -293,6 +293,12 @@ def fingerprint(m: Manifest, ids: list[str], spec: SampleSpec) -> str:
     return h.hexdigest()[:16]
 
 
+def _rig_maps(make, m: Manifest, spec: SampleSpec) -> torch.Tensor:
+    """Per-view maps of the rig for the input image (the reference phase, the triangulation)."""
+    size = (spec.height_px, spec.width_px)
+    return torch.from_numpy(make(m.rig, spec.views, *size, spec.period_px, spec.step, spec.n_steps))
+
+
 class FringeDataset(torch.utils.data.Dataset):
     """One scene per item: a dict of tensors (see :meth:`__getitem__`).
 
@@ -312,36 +318,8 @@ class FringeDataset(torch.utils.data.Dataset):
         self.manifest, self.ids, self.spec, self.norm, self.cache = m, list(ids), spec, norm, cache
         self.availability = availability  # inputs carry each view's availability (odmv.data.views)
         self.families = {s["id"]: str(s.get("family", "")) for s in m.scenes}
-        self.reference = (
-            torch.from_numpy(
-                reference_phase(
-                    m.rig,
-                    spec.views,
-                    spec.height_px,
-                    spec.width_px,
-                    spec.period_px,
-                    spec.step,
-                    spec.n_steps,
-                )
-            )
-            if spec.reference
-            else None
-        )
-        self.calibration = (
-            torch.from_numpy(
-                triangulation_maps(
-                    m.rig,
-                    spec.views,
-                    spec.height_px,
-                    spec.width_px,
-                    spec.period_px,
-                    spec.step,
-                    spec.n_steps,
-                )
-            )
-            if spec.calibration
-            else None
-        )
+        self.reference = _rig_maps(reference_phase, m, spec) if spec.reference else None
+        self.calibration = _rig_maps(triangulation_maps, m, spec) if spec.calibration else None
 
     def __len__(self) -> int:
         return len(self.ids)

@@ -16,15 +16,13 @@ from __future__ import annotations
 
 import argparse
 
-import hydra
 import numpy as np
 import torch
 
 from odmv.checkpoint import CheckpointError
 from odmv.losses import resize_target
 from odmv.models.blocks import OcclusionAwareFusion
-from odmv.module import load_module
-from odmv.study.records import read_only
+from odmv.study.records import checkpoint_data
 
 HEADS = ("Main", "Aux1", "Aux2")
 
@@ -69,13 +67,9 @@ def main(argv: list[str]) -> int:
     parser.add_argument("checkpoints", nargs="+", metavar="CKPT")
     for path in parser.parse_args(argv).checkpoints:
         try:
-            module = load_module(path).eval()
+            module, dm = checkpoint_data(path, None)
         except CheckpointError as e:
             raise SystemExit(f"error: {e}") from None
-        cfg = read_only(module.hparams.data_cfg, views=list(module.hparams.views))
-        dm = hydra.utils.instantiate(cfg, _convert_="all")
-        dm.prepare_data()
-        dm.setup()
         masks: dict[int, list] = {}
         blends: list[torch.Tensor] = []  # each fusion's weights, B x S x h x w, in call order
 

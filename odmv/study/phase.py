@@ -16,15 +16,13 @@ from __future__ import annotations
 
 import argparse
 
-import hydra
 import numpy as np
 import torch
 
 from odmv.checkpoint import CheckpointError
 from odmv.geometry import offset_from_coord, offset_from_depth
-from odmv.module import load_module
 from odmv.study.ocd import auc
-from odmv.study.records import read_only
+from odmv.study.records import checkpoint_data
 
 
 def phase_scores(module, loader) -> dict:
@@ -101,15 +99,11 @@ def main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     for path in args.checkpoints:
         try:
-            module = load_module(path).eval()
+            module, dm = checkpoint_data(path, "fit" if args.split == "val" else "test")
         except CheckpointError as e:
             raise SystemExit(f"error: {e}") from None
         if not module.phase_head:
             raise SystemExit(f"error: {path}: the net has no phase head (head=phase)")
-        cfg = read_only(module.hparams.data_cfg, views=list(module.hparams.views))
-        dm = hydra.utils.instantiate(cfg, _convert_="all")
-        dm.prepare_data()
-        dm.setup("fit" if args.split == "val" else "test")
         scores = phase_scores(module, dm._loader(args.split, shuffle=False))
         print("\n".join(report(path, module, scores)), flush=True)
     return 0

@@ -27,7 +27,14 @@ def read_only(data: dict, **changes) -> dict:
 def run_data(run: Path, stage: str, views: list[str] | None = None):
     """A finished run's best checkpoint (eval mode) and its data module set up for ``stage``,
     with the run's data settings (``views``: other views than the run's)."""
-    module = load_module(best_checkpoint(run)[0]).eval()
+    return checkpoint_data(best_checkpoint(run)[0], stage, views)
+
+
+def checkpoint_data(path: Path, stage: str | None, views: list[str] | None = None):
+    """A checkpoint's module (eval mode) and its data module set up for ``stage`` (None: every
+    split), reading the checkpoint's dataset (``views``: other views than its own); a bad
+    checkpoint raises CheckpointError naming it."""
+    module = load_module(path).eval()
     views = list(module.hparams.views) if views is None else views
     data = read_only(module.hparams.data_cfg, views=views)
     dm = hydra.utils.instantiate(data, _convert_="all")
