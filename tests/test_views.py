@@ -124,7 +124,7 @@ def test_training_with_view_dropout(model, tiny_dataset, tmp_path):
     predictor = load_predictor(tmp_path / "checkpoints" / "last.ckpt")
     x = predictor.inputs(torch.rand(4, 32, 32).numpy(), Rig())
     assert x.shape == (1, 4 * 4, 32, 32) and torch.all(x[0, 3::4] == 1)
-    assert predictor.run(x).shape == (1, 1, 32, 32)
+    assert predictor.run(x)["depth_mm"].shape == (1, 1, 32, 32)
     if model == "odmvnet":  # the test split with a projector missing
         ckpt = metrics["best_checkpoint"]
         run = [f"ckpt_path={ckpt}", "accelerator=cpu", "figures=0", "progress=false"]
