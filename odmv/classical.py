@@ -330,7 +330,7 @@ def classical_row(
     out.update(
         model="classical",
         views=list(m.views),
-        images_per_projector=(capture.images if capture else n_s * len(options.frequencies)),
+        **({"capture": capture.key, "images_per_projector": capture.images} if capture else {}),
         parameters=0,
         train_seconds=0.0,
         test_seconds=round(time.perf_counter() - t0, 1),

@@ -46,7 +46,9 @@ def test_fewer_images_cost_accuracy_or_coverage(twin_240, tmp_path):
     got = {}
     for c in CAPTURES:
         got[c] = classical_row(twin_240, tmp_path / c.name, split="train", capture=c)
-        assert got[c]["images_per_projector"] == c.images
+        # the report tells a capture's row from the classical row by what its record says
+        assert got[c]["images_per_projector"] == c.images and got[c]["capture"] == c.key
+    assert "capture" not in full and "images_per_projector" not in full
     # every step of both resolved frequencies is the classical row itself
     both = got[Capture(12, 2)]
     assert both["test/mae_mm"] == pytest.approx(full["test/mae_mm"], rel=1e-6)

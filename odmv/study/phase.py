@@ -9,7 +9,10 @@ projector lights: the wrapped phase's median error (rad), the share whose fringe
 (the decoded offset within half a period of the truth), the view's depth MAE (mm) where its
 order is right and overall, the share of the fused depth's weight the view gets where it is lit
 and where it is not, and the confidence's ROC AUC as a lit/unlit detector (1: separates them
-perfectly; 0.5: no information).
+perfectly; 0.5: no information). Last, where the wrong orders lie: their share of the lit
+pixels, how many of them are within a pixel of a depth edge (a step over 1 mm to a neighbour),
+the wrong share among lit pixels more than 8 mm above the plane, and the share of lit pixels
+where the regressed depth, which the order comes from, is more than half a period off.
 """
 
 from __future__ import annotations
@@ -56,6 +59,12 @@ def phase_scores(module, loader) -> dict:
             dphi = torch.atan2(sc[:, :, 0], sc[:, :, 1]) - torch.atan2(tc[:, :, 0], tc[:, :, 1])
             dphi = torch.remainder(dphi + torch.pi, 2 * torch.pi) - torch.pi
             err = (out["view_depth_mm"] - batch["depth_mm"]).abs()
+            truth_off = offset_from_coord(coord, maps)
+            coarse = offset_from_depth(module.depth_mm({"depth": out["regressed"]}), maps)
+            gy, gx = torch.gradient(truth[:, None].nan_to_num(0.0)[:, 0], dim=(-2, -1))
+            step = (torch.maximum(gx.abs(), gy.abs()) > 1.0).float()[:, None]
+            edge = torch.nn.functional.max_pool2d(step, 3, 1, 1)[:, 0] > 0
+            tall = truth.nan_to_num(float("-inf")).amax((-2, -1), keepdim=True) - truth > 8.0
             for v in range(maps.shape[1]):
                 lit = batch["lit"][:, v] > 0.5
                 keep(f"phase{v}", dphi[:, v][lit].abs())
@@ -67,6 +76,11 @@ def phase_scores(module, loader) -> dict:
                 keep(f"weight_unlit{v}", out["weights"][:, v][~lit])
                 keep(f"conf{v}", out["confidence"][:, v].flatten())
                 keep(f"lit{v}", lit.flatten())
+                keep("wrong", ~right)
+                keep("wrong_edge", edge[lit])
+                keep("tall_wrong", ~off[:, v][lit & tall])
+                far = (coarse[:, v] - truth_off[:, v]).abs() > maps[:, v, 1] / 2
+                keep("coarse_far", far[lit])
     return {k: np.concatenate([np.ravel(x) for x in v]) for k, v in acc.items()}
 
 
@@ -87,6 +101,13 @@ def report(path: str, module, scores: dict) -> list[str]:
             f"{unlit.mean() if unlit.size else float('nan'):.3f}, confidence AUC "
             f"{auc(scores[f'conf{v}'], scores[f'lit{v}']):.3f}"
         )
+    wrong = scores["wrong"]
+    lines.append(
+        f"  wrong orders: {wrong.mean():.2%} of the lit pixels, "
+        f"{scores['wrong_edge'][wrong].mean():.0%} of them at depth edges; "
+        f"{scores['tall_wrong'].mean():.0%} of the lit pixels above 8 mm; the regressed depth "
+        f"is more than half a period off on {scores['coarse_far'].mean():.2%} of the lit pixels"
+    )
     return lines
 
 
