@@ -100,7 +100,9 @@ def table_lines(rows: list[dict]) -> list[str]:
         "| MAE above 8 mm (mm) | coverage (%) | MAE on the 24-image classical's pixels (mm) |",
         "|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for r in sorted(rows, key=lambda r: (r["images"], r["method"])):
+    # by images, the networks before the classical method at one image
+    order = sorted(rows, key=lambda r: (r["images"], r["method"].startswith("classical")))
+    for r in order:
         cells = [_mm(r[k]) for k in COLUMNS[:3]]
         lines.append(
             f"| {r['method']} | {r['images']} | {r['seeds']} | {' | '.join(cells)} | "
