@@ -1,13 +1,20 @@
-"""How every app reports the project's own errors: one line, ``error: <file or key>: <problem>``,
-exit status 2, and no empty run folder left behind. ``HYDRA_FULL_ERROR=1`` shows the traceback.
+"""How every app reports a fault: one line, ``error: <file or key>: <problem>``, exit status 2,
+and no empty run folder left behind. ``HYDRA_FULL_ERROR=1`` shows the traceback.
 
 The project's errors (DataError, ManifestError, ExrError, SimulationError, ...) are
 ValueErrors that name the file or config key at fault; one raised by a config resolver or a
-constructor arrives wrapped by OmegaConf or Hydra and is reported by its own message.
+constructor arrives wrapped by OmegaConf or Hydra and is reported by its own message. The
+operating system's (a full disk, a read-only folder, a file where a folder belongs) name the
+file from the OSError. Hydra's own (an unknown config option, a key typo, a ``.hydra`` folder it
+cannot write) are put in one line by :func:`app`, which every entry point uses instead of
+``hydra.main``.
 """
 
 from __future__ import annotations
 
+import difflib
+import errno
+import functools
 import logging
 import os
 import re
@@ -27,13 +34,25 @@ T = TypeVar("T")
 
 #: What Hydra and the loggers write into a run folder before the first checkpoint; a folder
 #: holding only these belongs to a run that failed before it produced anything.
-_STARTUP_FILES = {".hydra", "train.log", "evaluate.log", "predict.log", "csv", "tensorboard"}
+_STARTUP_FILES = {
+    ".hydra",
+    "train.log",
+    "evaluate.log",
+    "predict.log",
+    "predict.yaml",
+    "csv",
+    "tensorboard",
+    "run.lock",
+    "failed.txt",
+}
 
 
 _WRAPPERS = (OmegaConfBaseException, InstantiationException)
 
 
 def _one_line(exc: BaseException) -> str:
+    if isinstance(exc, OSError):
+        return _os_line(exc)
     key = None
     while isinstance(exc, _WRAPPERS) and exc.__cause__ is not None:
         key = key or getattr(exc, "full_key", None)
@@ -44,6 +63,17 @@ def _one_line(exc: BaseException) -> str:
     line = re.sub(r"^\w+ raised while resolving interpolation: ", "", line)
     key = key or getattr(exc, "full_key", None)
     return f"{key}: {line}" if key and not line.startswith(f"{key}:") else line
+
+
+def _os_line(exc: OSError, where: str | os.PathLike | None = None) -> str:
+    """``<file>: <problem>`` for an OSError; a full disk also says what to do."""
+    name = exc.filename or where
+    problem = exc.strerror or str(exc) or type(exc).__name__
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        problem = "no space left on the device; free some, or write elsewhere"
+    elif exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+        problem = f"{problem.lower()}; write elsewhere (out= or paths.output_dir=)"
+    return f"{name}: {problem}" if name else problem
 
 
 def quiet_lightning() -> None:
@@ -94,22 +124,129 @@ class JobFailed:
     error: str
 
 
-def run_app(fn: Callable[[], T], run_dir: str | os.PathLike | None = None) -> T | JobFailed:
+def run_app(
+    fn: Callable[[], T], run_dir: str | os.PathLike | list[Path] | None = None
+) -> T | JobFailed:
     """Run an app's body; on one of the project's errors print one line and exit with 2
-    (in a multirun: return JobFailed)."""
+    (in a multirun: return JobFailed). ``run_dir``: the run folder(s) to remove if the failed
+    run left them empty (a list may grow while the body runs)."""
     quiet_lightning()
     try:
         return fn()
-    except (ValueError, *_WRAPPERS) as exc:
-        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+    except (ValueError, OSError, *_WRAPPERS) as exc:
+        if traceback_wanted():
             raise
-        line = _one_line(exc)
+        folders = run_dir if isinstance(run_dir, list) else [run_dir] if run_dir else []
+        where = folders[-1] if folders else None
+        line = _os_line(exc, where) if isinstance(exc, OSError) else _one_line(exc)
         if rank_zero_only.rank == 0:  # DDP ranks fail alike; one line is enough
             print(f"error: {line}", file=sys.stderr)
-        remove_if_empty(Path(run_dir) if run_dir else None)
+        for folder in folders:
+            remove_if_empty(Path(folder))
         if in_multirun():
             return JobFailed(line)
         sys.exit(2)
+
+
+def traceback_wanted() -> bool:
+    return os.environ.get("HYDRA_FULL_ERROR") == "1"
+
+
+def app(config_name: str) -> Callable:
+    """``hydra.main`` of an entry point (config ``odmv/conf/<config_name>.yaml``), with Hydra's
+    own errors in one line and top-level keys added with ``+`` that the app does not have
+    refused (Hydra would add them, and the app would ignore them)."""
+    import hydra
+
+    from odmv.config import CONF_DIR
+
+    def decorate(fn: Callable) -> Callable:
+        @functools.wraps(fn)
+        def checked(cfg):
+            added = unknown_added_keys()
+            if added:
+                if traceback_wanted():
+                    raise ValueError(added)
+                print(f"error: {added}", file=sys.stderr)
+                sys.exit(2)
+            return fn(cfg)
+
+        entry = hydra.main(version_base="1.3", config_path=CONF_DIR, config_name=config_name)
+        wrapped = entry(checked)
+
+        @functools.wraps(fn)
+        def main(*args, **kwargs):
+            from hydra._internal import utils
+
+            original = utils.run_and_report
+            utils.run_and_report = _report_in_one_line
+            try:
+                return wrapped(*args, **kwargs)
+            finally:
+                utils.run_and_report = original
+
+        return main
+
+    return decorate
+
+
+def _report_in_one_line(func: Callable[[], T]) -> T:
+    """Hydra's ``run_and_report`` (it runs composition and the app), one line instead of its
+    option lists and tracebacks."""
+    try:
+        return func()
+    except Exception as exc:
+        if traceback_wanted():
+            raise
+        from hydra.errors import HydraException
+
+        line = hydra_line(exc)
+        if not isinstance(exc, (ValueError, OSError, HydraException, *_WRAPPERS)):
+            line += f" ({type(exc).__name__}; HYDRA_FULL_ERROR=1 shows where)"
+        print(f"error: {line}", file=sys.stderr)
+        sys.exit(2)
+
+
+def hydra_line(exc: BaseException) -> str:
+    """One line for an error of Hydra's composition, naming the key and the valid choices."""
+    from hydra.errors import ConfigCompositionException, MissingConfigException
+
+    if isinstance(exc, MissingConfigException) and exc.missing_cfg_file and exc.options:
+        group, _, name = str(exc.missing_cfg_file).rpartition("/")
+        return f"{group}={name}: no such {group}; choose one of {', '.join(exc.options)}"
+    cause = exc.__cause__
+    if isinstance(exc, ConfigCompositionException) and isinstance(cause, OmegaConfBaseException):
+        key, parent = getattr(cause, "full_key", None), getattr(cause, "parent_node", None)
+        if key and "not in struct" in str(cause):
+            line = f"{key}: no such setting"
+            keys = [str(k) for k in parent.keys()] if hasattr(parent, "keys") else []
+            close = difflib.get_close_matches(str(cause.key), keys, n=1)
+            prefix = key.rpartition(".")[0]
+            return line + (
+                f"; did you mean {'.'.join(filter(None, [prefix, close[0]]))}?" if close else ""
+            )
+    return _one_line(exc)
+
+
+def unknown_added_keys() -> str | None:
+    """The line refusing top-level keys that the command line added with ``+`` (``+out=DIR``
+    where the app has no ``out``), or None; config groups (``+experiment=...``) and keys inside
+    existing settings (``+trainer.max_steps=...``, ``+rows.NAME=...``) are the app's own."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    if not HydraConfig.initialized():
+        return None
+    groups = set(HydraConfig.get().runtime.choices)
+    parsed = OverridesParser.create().parse_overrides(list(HydraConfig.get().overrides.task))
+    added = [
+        o.key_or_group
+        for o in parsed
+        if o.is_add() and "." not in o.key_or_group and o.key_or_group not in groups
+    ]
+    if not added:
+        return None
+    return f"{added[0]}: not a setting of this app (added with +{added[0]}=, it would be ignored)"
 
 
 def in_multirun() -> bool:

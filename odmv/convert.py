@@ -37,16 +37,15 @@ from dataclasses import asdict, replace
 from functools import partial
 from pathlib import Path
 
-import hydra
 import numpy as np
 from omegaconf import DictConfig
 
 from odmv.calibration import load_calibration
 from odmv.classical import reconstruct_scene
-from odmv.cli import run_app
-from odmv.config import CONF_DIR
+from odmv.cli import app, run_app
 from odmv.fpp import wrapped_phase
 from odmv.io.exr import read_exr, write_exr
+from odmv.io.guard import refuse_inside
 from odmv.io.images import find_view_image, read_image
 from odmv.io.manifest import (
     DEPTH_CHANNEL,
@@ -306,6 +305,7 @@ def convert(
     src, out = Path(src), Path(out)
     if not src.exists():
         raise ConvertError(f"{src}: no such file or folder")
+    refuse_inside("out", [out], [src])
     if out.exists() and any(out.iterdir()):
         raise ConvertError(f"{out}: exists and is not empty; choose another out=")
     rig = load_calibration(calibration) if calibration else None
@@ -370,6 +370,12 @@ def _write(
         d = root / "scenes" / sid
         for v, image in images.items():
             image, how = intensity(crop(np.asarray(image)), mode)
+            bad = int((~np.isfinite(image)).sum())
+            if bad:
+                raise ConvertError(
+                    f"{src}: sample {index} ({label or 'no split'}), view {v}: {bad} fringe "
+                    "pixel(s) are not finite (NaN or infinite); only depth may be NaN (no truth)"
+                )
             if how not in hows:
                 hows.add(how)
                 print(f"intensity: {src}: {how}", flush=True)
@@ -403,7 +409,7 @@ def _write(
     return manifest
 
 
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="convert")
+@app("convert")
 def main(cfg: DictConfig) -> None:
     options = {k: v for k, v in (cfg.options or {}).items()}
 

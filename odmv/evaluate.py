@@ -19,8 +19,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from odmv.cli import run_app, set_threads, task_overrides
-from odmv.config import CONF_DIR  # (and registers the config resolvers)
+from odmv.cli import app, run_app, set_threads, task_overrides
 from odmv.data.dataset import DataError
 from odmv.data.views import MissingViews
 from odmv.io.atomic import write_json
@@ -261,7 +260,7 @@ def report(metrics: dict) -> str:
     )
 
 
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="evaluate")
+@app("evaluate")
 def main(cfg: DictConfig) -> None:
     metrics = run_app(lambda: evaluate(cfg), cfg.paths.output_dir)
     print(report(metrics))

@@ -21,13 +21,11 @@ import logging
 import warnings
 from pathlib import Path
 
-import hydra
 import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from odmv.cli import run_app
-from odmv.config import CONF_DIR  # (and registers the config resolvers)
+from odmv.cli import app, run_app
 from odmv.data.reference import view_channels
 from odmv.geometry import triangulation_maps
 from odmv.io.atomic import write_atomic
@@ -143,7 +141,7 @@ def export_onnx(ckpt_path: str | Path, out_dir: str | Path) -> tuple[Path, float
     return path, float(np.abs(got - ref).max())
 
 
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="export")
+@app("export")
 def main(cfg: DictConfig) -> None:
     path, diff = run_app(lambda: export_onnx(cfg.ckpt_path, cfg.out))
     print(f"{path}: ONNX Runtime matches PyTorch within {diff:.2e} mm")

@@ -7,6 +7,7 @@ from a checkpoint alone (:func:`load_module`).
 
 from __future__ import annotations
 
+import random
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -41,7 +42,35 @@ class NonFiniteLossError(ValueError):
     """The training loss became NaN or infinite; training stops."""
 
 
+def rng_states() -> dict:
+    """The random generators' states as plain data and tensors (a weights_only checkpoint)."""
+    kind, keys, pos, has_gauss, gauss = np.random.get_state()
+    version, internal, gauss_next = random.getstate()
+    states = {
+        "torch": torch.get_rng_state(),
+        "numpy": [kind, torch.from_numpy(keys.astype(np.int64)), pos, has_gauss, gauss],
+        "python": [version, list(internal), gauss_next],
+    }
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        states["cuda"] = torch.cuda.get_rng_state_all()
+    return states
+
+
+def set_rng_states(states: dict) -> None:
+    torch.set_rng_state(states["torch"])
+    kind, keys, pos, has_gauss, gauss = states["numpy"]
+    np.random.set_state((kind, keys.numpy().astype(np.uint32), pos, has_gauss, gauss))
+    version, internal, gauss_next = states["python"]
+    random.setstate((version, tuple(internal), gauss_next))
+    if "cuda" in states and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(states["cuda"])
+
+
 def build_net(net_cfg: dict) -> torch.nn.Module:
+    for key in ("base_width", "full_width"):
+        width = net_cfg.get(key)
+        if width is not None and (not isinstance(width, int) or width < 1):
+            raise ValueError(f"model.net.{key}: {width!r}; a positive channel count")
     return hydra.utils.instantiate(net_cfg, _convert_="all")
 
 
@@ -281,9 +310,15 @@ class FPPModule(L.LightningModule):
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         checkpoint["train_seconds"] = self.train_seconds()
+        checkpoint["rng"] = rng_states()
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         self._seconds_before = float(checkpoint.get("train_seconds", 0.0))
+        if checkpoint.get("rng") is not None and self._trainer is not None:
+            # a resumed fit: the generators as the interrupted run left them, before the
+            # loader draws its first shuffle (Lightning creates that iterator ahead of the epoch
+            # hooks), so the resumed run sees the batches of the uninterrupted one
+            set_rng_states(checkpoint["rng"])
 
     def on_fit_start(self):
         """Key settings with the metrics they led to, for TensorBoard's HPARAMS tab (which shows

@@ -20,23 +20,28 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import hydra
 import matplotlib
 import numpy as np
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
 from odmv.calibration import load_calibration
 from odmv.classical import decode_views, fused_depth, single_shot_depth, twin_options
-from odmv.cli import run_app
-from odmv.config import CONF_DIR  # (and registers the config resolvers)
+from odmv.cli import app, run_app
 from odmv.data.dataset import DataError, SampleSpec, check_spec, load_scene
 from odmv.fpp import period_in_camera_px
 from odmv.inference import load_predictor
-from odmv.io.atomic import write_atomic, write_npy
+from odmv.io.atomic import write_atomic, write_npy, write_text
 from odmv.io.exr import write_exr
-from odmv.io.images import IMAGE_EXTENSIONS, find_view_image, fit_to, read_image
+from odmv.io.guard import refuse_inside
+from odmv.io.images import (
+    IMAGE_EXTENSIONS,
+    find_view_image,
+    fit_to,
+    intensity_problem,
+    read_image,
+)
 from odmv.io.manifest import (
     FRINGE_DIR,
     HEIGHT_QUANTITY,
@@ -103,6 +108,8 @@ class ImageReader:
     it scales and resizes them (and again whenever that changes)."""
 
     def __init__(self, scale: float | None, fit: str):
+        if scale is not None and not float(scale) > 0:
+            raise DataError(f"scale: {scale}; a positive full scale (null: from the files)")
         self.scale, self.fit = scale, fit
         self._said: set[str] = set()
 
@@ -111,7 +118,11 @@ class ImageReader:
             self._said.add(text)
             print(text, flush=True)
 
-    def read(self, folder: Path, stems: list[str], size: tuple[int, int] | None) -> np.ndarray:
+    def read(
+        self, folder: Path, stems: list[str], size: tuple[int, int] | None, fringes: bool = False
+    ) -> np.ndarray:
+        """The images ``stems`` of ``folder`` in full-scale units, checked (with ``fringes``:
+        each must show a fringe)."""
         images = []
         for stem in stems:
             path = find_view_image(folder, stem)
@@ -123,10 +134,20 @@ class ImageReader:
             raise DataError(f"{folder}: the view images differ in size {sorted(shapes)}")
         kinds = {(im.kind, im.full_scale) for _, im in images}
         kind, full_scale = sorted(kinds)[0]
-        scale = self.scale or full_scale
-        how = "given by scale=" if self.scale else f"{kind}; override with scale="
+        scale = full_scale if self.scale is None else float(self.scale)
+        how = "given by scale=" if self.scale is not None else f"{kind}; override with scale="
         self._say(f"intensity: value / {scale:g} ({how})")
         stack = np.stack([im.data for _, im in images]) / np.float32(scale)
+        for (path, _), image in zip(images, stack, strict=True):
+            problem = intensity_problem(
+                path,
+                image,
+                negative="a camera's intensities are not negative",
+                bright=f"divided by scale={scale:g}; give the camera's full scale as scale=",
+                fringe=fringes,
+            )
+            if problem:
+                raise DataError(problem)
         if size is None:
             return stack
         stack, note = fit_to(stack, size, self.fit)
@@ -165,7 +186,7 @@ def network_images(scene: Scene, predictor, reader: ImageReader, rig: Rig, have=
     not in ``have``: zeros, for the net to be told it is missing)."""
     have = list(predictor.views) if have is None else list(have)
     if scene.manifest is None and have != list(predictor.views):
-        present = reader.read(scene.folder, have, predictor.size)
+        present = reader.read(scene.folder, have, predictor.size, fringes=True)
         images = np.zeros((len(predictor.views), *present.shape[1:]), np.float32)
         for k, v in enumerate(have):
             images[predictor.views.index(v)] = present[k]
@@ -177,7 +198,7 @@ def network_images(scene: Scene, predictor, reader: ImageReader, rig: Rig, have=
         images = np.array(load_scene(m, scene.name, spec)["fringes"], np.float32)
         images[[v not in have for v in predictor.views]] = 0  # views= left them out
         return images
-    return reader.read(scene.folder, predictor.views, predictor.size)
+    return reader.read(scene.folder, predictor.views, predictor.size, fringes=True)
 
 
 def matching_fringe(scene: Scene, predictor) -> tuple[int, int]:
@@ -294,6 +315,14 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
     if predictor is not None and any(sc.manifest is None for sc in scenes):
         print(expected_images(predictor), flush=True)
     out_root = Path(cfg.out or cfg.paths.output_dir)
+    refuse_inside(
+        "out",
+        [out_root / s.name if len(scenes) > 1 else out_root for s in scenes],
+        [s.folder for s in scenes],
+        protected=[s.manifest.root for s in scenes if s.manifest is not None],
+        overwrite=bool(cfg.get("overwrite")),
+    )
+    write_text(out_root / "predict.yaml", OmegaConf.to_yaml(cfg))  # what made these files
     results = []
     t0 = time.perf_counter()
     columns = (TextColumn("predicting"), BarColumn(), MofNCompleteColumn())
@@ -469,7 +498,7 @@ def single_shot_images(scene: Scene, cfg, reader: ImageReader, views: list[str])
         spec = SampleSpec(tuple(views), m.height_px, m.width_px, frequency, fringe.train_step)
         images = np.array(load_scene(m, scene.name, spec)["fringes"], np.float64)
     else:
-        images = reader.read(scene.folder, views, None).astype(np.float64)
+        images = reader.read(scene.folder, views, None, fringes=True).astype(np.float64)
     return images, fringe.periods_px[frequency]
 
 
@@ -515,7 +544,7 @@ def write_outputs(
     return written
 
 
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="predict")
+@app("predict")
 def main(cfg: DictConfig) -> None:
     # a folder the user named is theirs: never removed, even when the prediction fails
     results = run_app(lambda: predict(cfg), None if cfg.out else cfg.paths.output_dir)

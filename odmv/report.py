@@ -14,12 +14,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from odmv.cli import run_app
-from odmv.config import CONF_DIR
+from odmv.cli import app, run_app
 from odmv.io.atomic import write_csv, write_text
 from odmv.metrics import subset_suffix
 from odmv.study.captures import report_section
@@ -307,7 +305,7 @@ def write_report(
     return write_text(out / "tables.md", "\n".join(lines) + "\n")
 
 
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="report")
+@app("report")
 def main(cfg: DictConfig) -> None:
     runs = [cfg.runs] if isinstance(cfg.runs, str) else list(cfg.runs)
     path = run_app(

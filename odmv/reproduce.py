@@ -34,8 +34,8 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig, OmegaConf
 
 from odmv.classical import CAPTURES, classical_row
-from odmv.cli import run_app
-from odmv.config import CONF_DIR, compose_train
+from odmv.cli import app, run_app
+from odmv.config import compose_train
 from odmv.io.atomic import write_json, write_text
 from odmv.io.runfolder import CONFIG, METRICS, PREDICTIONS, ROBUSTNESS, SCENES_CSV
 from odmv.losses import OPTIONAL_TERMS, PHASE_TERMS
@@ -419,7 +419,7 @@ def reproduce(cfg: DictConfig) -> Path:
     return out
 
 
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="reproduce")
+@app("reproduce")
 def main(cfg: DictConfig) -> None:
     run_app(lambda: reproduce(cfg))
 

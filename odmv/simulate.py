@@ -9,11 +9,9 @@ from __future__ import annotations
 
 import sys
 
-import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from odmv.cli import run_app
-from odmv.config import CONF_DIR
+from odmv.cli import app, run_app
 from odmv.io.manifest import load_manifest
 from odmv.sim.shards import merge, parse_shard, shard_ids
 from odmv.sim.writer import SimSettings, simulate
@@ -56,7 +54,7 @@ def check(root, how: str, ids: list[str] | None = None) -> int:
     return 0
 
 
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="simulate")
+@app("simulate")
 def main(cfg: DictConfig) -> None:
     code = run_app(lambda: run(cfg))
     if code:

@@ -25,6 +25,7 @@ from odmv.checkpoint import (
 )
 from odmv.cli import (
     JobFailed,
+    app,
     in_multirun,
     rank_zero_print,
     remove_if_empty,
@@ -33,13 +34,13 @@ from odmv.cli import (
     task_overrides,
     tool,
 )
-from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.ema import WeightEMA
 from odmv.io.atomic import write_json, write_text
 from odmv.io.runfolder import CONFIG, METRICS
 from odmv.module import FPPModule
 from odmv.pace import CpuPace, heavy_on_cpu
 from odmv.provenance import provenance
+from odmv.runlock import check_new_run, holding
 from odmv.sweep import append_row
 
 
@@ -76,6 +77,9 @@ def run_summary(cfg: DictConfig) -> dict:
 
 def build(cfg: DictConfig):
     """Data module, module, trainer from a composed config (shared with evaluation)."""
+    epochs = cfg.trainer.get("max_epochs")
+    if epochs is not None and (int(epochs) == 0 or int(epochs) < -1):
+        raise ValueError(f"trainer.max_epochs: {epochs}; at least 1 (or -1 with trainer.max_steps)")
     data_cfg = data_config(cfg)
     dm = hydra.utils.instantiate(data_cfg, _convert_="all")
     module = FPPModule(
@@ -145,11 +149,18 @@ def train(cfg: DictConfig) -> dict[str, float]:
     set_threads(cfg.get("threads"))
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     ckpt = read_checkpoint(cfg.ckpt_path) if cfg.ckpt_path else None
-    if ckpt is not None and (run := run_folder_of(cfg.ckpt_path)) is not None:
+    continuing = ckpt is not None and (run := run_folder_of(cfg.ckpt_path)) is not None
+    if continuing:
         cfg.paths.output_dir = str(run)
         rank_zero_print(f"continuing {run} from epoch {ckpt.get('epoch', 0) + 1}")
     out_dir = Path(cfg.paths.output_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    if not continuing:
+        check_new_run(out_dir)
+    with holding(out_dir):
+        return _fit_and_test(cfg, ckpt, out_dir)
+
+
+def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str, float]:
     if not (out_dir / CONFIG).is_file():  # called without Hydra's app (the demo, scripts)
         write_text(out_dir / CONFIG, OmegaConf.to_yaml(cfg))
     dm, module, trainer = build(cfg)
@@ -223,19 +234,21 @@ class Metrics(dict):
         return float(self[self.optimized])
 
 
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="train")
+@app("train")
 def main(cfg: DictConfig) -> Metrics | JobFailed:
     from hydra.core.hydra_config import HydraConfig
 
     hydra_dir = Path(HydraConfig.get().runtime.output_dir)
+    folders = [hydra_dir]  # removed if the run fails and leaves them empty
 
     def body() -> tuple[DictConfig, dict]:
         check_launch(cfg)
         run_cfg = resumed_config(cfg, task_overrides()) if cfg.get("resume") else cfg
-        adopt_hydra_files(hydra_dir, Path(run_cfg.paths.output_dir))
+        folders.append(Path(run_cfg.paths.output_dir))
+        adopt_hydra_files(hydra_dir, folders[-1])
         return run_cfg, train(run_cfg)
 
-    result = run_app(body, hydra_dir)
+    result = run_app(body, folders)
     if isinstance(result, JobFailed):
         return result
     run_cfg, metrics = result
@@ -258,8 +271,12 @@ def adopt_hydra_files(hydra_dir: Path, out: Path) -> None:
     ``.hydra/`` (its config, which ``resume=DIR`` reads) unless it has its own (a resumed run);
     the folder Hydra made is then removed when the run ends."""
     source, target = hydra_dir / ".hydra", out / ".hydra"
-    if out.resolve() == hydra_dir.resolve() or not source.is_dir() or target.exists():
+    if out.resolve() == hydra_dir.resolve() or not source.is_dir():
         return
+    if target.exists():
+        if (out / METRICS).is_file() or any((out / "checkpoints").glob("*.ckpt")):
+            return  # a run's own config (resumed, or refused as another run's by train)
+        shutil.rmtree(target)  # a failed run's, which left nothing else
     out.mkdir(parents=True, exist_ok=True)
     shutil.move(source, target)
 

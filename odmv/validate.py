@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from odmv.io import exr
+from odmv.io.images import intensity_problem
 from odmv.io.manifest import (
     DEPTH_CHANNEL,
     DEPTH_FILE,
@@ -88,22 +89,13 @@ def _check_values(path: Path, data: dict[str, np.ndarray], nan_depth: bool) -> s
 
 
 def _check_intensity(path: Path, a: np.ndarray) -> str | None:
-    """Fringe images hold linear intensity: never negative, above 1.5 (an 8- or 16-bit value
-    not divided by its full scale) on at most 1 % of the pixels."""
-    lo, hi = float(a.min(initial=0)), float(a.max(initial=0))
-    if lo < 0:
-        return (
-            f"{path}: fringe intensities in [{lo:.3g}, {hi:.3g}] are negative; an import of "
-            "[-1, 1] data needs python -m odmv.convert ... intensity=auto"
-        )
-    bright = float((a > 1.5).mean())
-    if bright > 0.01:
-        return (
-            f"{path}: {bright:.1%} of the fringe intensities lie above 1.5 (range [{lo:.3g}, "
-            f"{hi:.3g}]): integer values not divided by their full scale; convert with "
-            "intensity=auto"
-        )
-    return None
+    """Fringe images hold linear intensity (odmv.io.images.intensity_problem)."""
+    return intensity_problem(
+        path,
+        a,
+        negative="an import of [-1, 1] data needs python -m odmv.convert ... intensity=auto",
+        bright="integer values not divided by their full scale; convert with intensity=auto",
+    )
 
 
 def validate(root: str | Path, deep: bool = True, scene_ids: list[str] | None = None) -> Report:

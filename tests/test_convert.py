@@ -211,12 +211,14 @@ def test_reference_input_is_refused_for_an_import(tmp_path):
 
 
 def test_bad_sources_are_named_and_leave_nothing(tmp_path):
+    src = tmp_path / "src"
+    src.mkdir()
     with pytest.raises(ConvertError, match=r"X_train_fringe.npy: no such file"):
-        convert("nguyen2020", tmp_path, tmp_path / "out")
+        convert("nguyen2020", src, tmp_path / "out")
     assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".out*"))
-    np.save(tmp_path / "f1_80.npy", np.zeros((3, 32, 32), np.float32))
-    np.save(tmp_path / "Z.npy", np.zeros((3, 32, 16), np.float32))
+    np.save(src / "f1_80.npy", np.zeros((3, 32, 32), np.float32))
+    np.save(src / "Z.npy", np.zeros((3, 32, 16), np.float32))
     with pytest.raises(ConvertError, match=r"Z.npy: shape \(3, 32, 16\) differs"):
-        convert("uhrnet", tmp_path, tmp_path / "out")
+        convert("uhrnet", src, tmp_path / "out")
     with pytest.raises(ConvertError, match="format: 'kinect' unknown"):
-        convert("kinect", tmp_path, tmp_path / "out")
+        convert("kinect", src, tmp_path / "out")

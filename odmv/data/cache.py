@@ -8,6 +8,7 @@ size and mtime: any change to the dataset selects a new folder, i.e. rebuilds.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shutil
@@ -18,6 +19,7 @@ import numpy as np
 
 from odmv.data.dataset import SampleSpec
 from odmv.data.subsets import MASKS
+from odmv.io.atomic import DiskFullError, remove_abandoned
 
 _ARRAYS = {
     "fringes": np.float32,
@@ -38,6 +40,27 @@ def _names(spec: SampleSpec) -> list[str]:
 
 
 _DONE = "complete.json"
+
+
+def _allocated(path: Path, dtype, shape: tuple[int, ...]) -> np.memmap:
+    """A writable memory-mapped .npy whose blocks are reserved on disk first: a sparse file's
+    pages find a full disk only when written, which kills the process with SIGBUS (no message,
+    no clean-up); reserved, a full disk is a one-line error here."""
+    array = np.lib.format.open_memmap(path, "w+", dtype, shape)
+    try:
+        with path.open("r+b") as fh:
+            os.posix_fallocate(fh.fileno(), 0, path.stat().st_size)
+    except OSError as e:
+        if e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+            need = path.stat().st_size / 2**20
+            raise DiskFullError(
+                f"{path.parent.parent}: no space left for the decoded-array cache ({path.name} "
+                f"needs {need:.1f} MiB); free some, or set data.cache_dir elsewhere"
+            ) from None
+        if e.errno not in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
+            raise
+    return array
+    return True
 
 
 class ArrayCache:
@@ -76,6 +99,7 @@ class ArrayCache:
         folder renamed when complete); reuse it if it is already complete."""
         if cls.complete(folder):
             return cls(folder)
+        remove_abandoned(folder)
         tmp = folder.with_name(f".{folder.name}.{os.getpid()}.tmp")
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
@@ -91,10 +115,7 @@ class ArrayCache:
         names = _names(spec)
         try:
             out = {
-                k: np.lib.format.open_memmap(
-                    tmp / f"{k}.npy", "w+", _ARRAYS[k], (len(ids),) + shapes[k]
-                )
-                for k in names
+                k: _allocated(tmp / f"{k}.npy", _ARRAYS[k], (len(ids),) + shapes[k]) for k in names
             }
             for i, sid in enumerate(ids):
                 raw = load(sid)

@@ -15,6 +15,7 @@ from lightning.pytorch.overrides.distributed import UnrepeatedDistributedSampler
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from torch.utils.data import ConcatDataset, DistributedSampler
 
+from odmv.cli import rank_zero_print
 from odmv.data.augment import AUGMENTS, QuarterTurns
 from odmv.data.cache import ArrayCache
 from odmv.data.dataset import (
@@ -196,6 +197,12 @@ class FPPDataModule(L.LightningDataModule):
             self.reference,
             self.calibration,
         )
+        if self.spec.height_px > m.height_px or self.spec.width_px > m.width_px:
+            rank_zero_print(
+                f"data.resolution {self.spec.height_px}x{self.spec.width_px}: above the "
+                f"dataset's {m.height_px}x{m.width_px} px, so images and ground truth are "
+                "upsampled (the net learns interpolated depth); render the dataset at that size"
+            )
         sat = m.extra.get("simulation", {}).get("render", {}).get("saturation", 1.0)
         intensity_max = self.intensity_max if self.intensity_max is not None else sat
         if self.reference and m.rig is None:

@@ -221,6 +221,11 @@ def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]
         a = image(path, FRINGE_CHANNEL)
         if not np.isfinite(a).all():  # would train to NaN on every metric
             raise DataError(f"{path}: {int((~np.isfinite(a)).sum())} non-finite intensity values")
+        if a.min() < -1.01:  # what a corrupted file decodes to, never an intensity
+            raise DataError(
+                f"{path}: intensities down to {a.min():.3g}, which no camera records (a "
+                "corrupted file?); render or convert the scene again"
+            )
         return a
 
     fd = d / FRINGE_DIR

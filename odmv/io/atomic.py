@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import errno
+import glob
 import json
 import os
 import shutil
@@ -28,9 +29,42 @@ class DiskFullError(ValueError):
     it needed (a ValueError: every app reports it in one line, odmv.cli)."""
 
 
+#: free bytes below which a writer's own error is taken for a full disk
+_NO_ROOM_BYTES = 1 << 20
+
+
+def _no_room(folder: Path) -> bool:
+    try:
+        return shutil.disk_usage(folder).free < _NO_ROOM_BYTES
+    except OSError:
+        return False
+
+
 def temporary(path: Path) -> Path:
     """The name a file is written under before it replaces ``path``."""
     return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+
+
+def remove_abandoned(path: Path) -> None:
+    """Remove the temporary files or folders of writes of ``path`` whose process is gone (a
+    killed run's); a live process's are its own."""
+    for tmp in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
+        pid = tmp.name[len(path.name) + 2 : -4]
+        if pid.isdigit() and not alive(int(pid)):
+            if tmp.is_dir():
+                shutil.rmtree(tmp, ignore_errors=True)
+            else:
+                tmp.unlink(missing_ok=True)
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
 
 
 def write_atomic(path: str | os.PathLike, write: Callable[[Path], object]) -> Path:
@@ -39,12 +73,15 @@ def write_atomic(path: str | os.PathLike, write: Callable[[Path], object]) -> Pa
     temporary file is gone and an existing ``path`` is untouched."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_abandoned(path)
     tmp = temporary(path)
     try:
         write(tmp)
         os.replace(tmp, path)
-    except OSError as e:
-        if e.errno in _FULL:
+    except Exception as e:
+        # torch.save and OpenEXR report a full disk as RuntimeErrors of their own wording
+        full = e.errno in _FULL if isinstance(e, OSError) else _no_room(path.parent)
+        if full:
             size = tmp.stat().st_size if tmp.exists() else 0
             free = shutil.disk_usage(path.parent).free
             raise DiskFullError(

@@ -89,6 +89,49 @@ def read_image(path: str | Path) -> Image:
     raise ImageError(f"{path}: values of type {data.dtype}; use 8/16-bit integers or floats")
 
 
+#: an image holds a fringe when its intensity spreads (1st to 99th percentile) by at least this
+#: share of its bright level (99th percentile): a fringe spreads by most of it (~0.9), a flat
+#: grey or saturated capture only by its noise; and when that level is at least DARK_LEVEL of
+#: full scale (a black frame is all noise). Relative, so a dim capture (12-bit values read as
+#: 16-bit, a weak projector) still counts.
+MIN_FRINGE_CONTRAST = 0.1
+DARK_LEVEL = 0.01
+
+
+def intensity_problem(
+    path: Path, a: np.ndarray, negative: str, bright: str, fringe: bool = False
+) -> str | None:
+    """What is wrong with an image of linear intensity in full-scale units, or None: values
+    that are not finite, below zero (``negative`` says what to do; below -1 no data are
+    intensity at all), above 1.5 on more than 1 % of the pixels (``bright`` says what to do),
+    or, for a fringe image (``fringe``), no fringe at all."""
+    bad = int((~np.isfinite(a)).sum())
+    if bad:
+        return f"{path}: {bad} pixel(s) are not finite (NaN or infinite)"
+    lo, hi = float(a.min(initial=0)), float(a.max(initial=0))
+    if lo < -1.01:
+        return (
+            f"{path}: intensities down to {lo:.3g}, which no camera records (a corrupted or "
+            "foreign file?); capture, render or convert it again"
+        )
+    if lo < -0.01:
+        return f"{path}: fringe intensities in [{lo:.3g}, {hi:.3g}] are negative; {negative}"
+    share = float((a > 1.5).mean())
+    if share > 0.01:
+        return (
+            f"{path}: {share:.1%} of the intensities lie above 1.5 times full scale (range "
+            f"[{lo:.3g}, {hi:.3g}]); {bright}"
+        )
+    if fringe:
+        low, high = (float(x) for x in np.percentile(a, [1, 99]))
+        if high < DARK_LEVEL or high - low < MIN_FRINGE_CONTRAST * high:
+            return (
+                f"{path}: no fringe (1-99 % intensities {low:.3f}-{high:.3f} of full scale): a "
+                "uniform, black or saturated image where the projector's fringe belongs"
+            )
+    return None
+
+
 def fit_to(stack: np.ndarray, size: tuple[int, int], fit: str) -> tuple[np.ndarray, str]:
     """Bring S x h x w images to the network's ``size`` (H, W); returns them and what was done.
 

@@ -12,6 +12,7 @@ import os
 import shutil
 from pathlib import Path
 
+from odmv.io.guard import refuse_inside
 from odmv.io.manifest import MANIFEST, Manifest, ManifestError, load_manifest
 from odmv.sim.writer import SimulationError
 
@@ -43,6 +44,7 @@ def merge(dirs: list[str | Path], out: str | Path) -> Manifest:
         raise SimulationError("merge: name the shard folders, merge=[DIR,...]")
     if out.exists():
         raise SimulationError(f"{out}: exists; merge writes a new folder (choose another out=)")
+    refuse_inside("out", [out], dirs)
     manifests = []
     for d in dirs:
         try:

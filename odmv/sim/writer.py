@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
@@ -22,6 +24,7 @@ import OpenEXR
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from odmv.io.exr import write_exr
+from odmv.io.guard import refuse_inside
 from odmv.io.manifest import (
     DEPTH_CHANNEL,
     DEPTH_FILE,
@@ -281,8 +284,22 @@ def _environment(values: dict[str, str]):
             os.environ.pop(key, None)
 
 
-def _worker_init():
+def _worker_init(parent: int | None = None):
     OpenEXR.set_global_thread_count(0)
+    die_with_parent(parent)
+
+
+def die_with_parent(parent: int | None) -> None:
+    """Have the kernel kill this worker when its parent dies (a killed ``simulate`` would
+    otherwise leave workers rendering on, then waiting forever for a queue nobody reads)."""
+    if sys.platform != "linux" or parent is None:
+        return
+    import ctypes
+
+    pr_set_pdeathsig = 1
+    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL)
+    if os.getppid() != parent:  # the parent died before the request took effect
+        os._exit(1)
 
 
 def scene_record(m: Manifest, sid: str) -> dict:
@@ -367,6 +384,10 @@ def simulate(
         raise SimulationError(f"images={s.images!r}: use 'full' or 'training'")
     if s.height_px % 16 or s.width_px % 16:
         raise SimulationError(f"resolution {s.height_px}x{s.width_px}: use multiples of 16")
+    if s.scenes < 1:
+        raise SimulationError(f"scenes: {s.scenes}; render at least one scene")
+    if s.mesh_dir:
+        refuse_inside("out", [s.out], [s.mesh_dir])
     manifest = _manifest_for(s)
     if (s.out / MANIFEST).exists():
         old = without_phantom_uniform(load_manifest(s.out))
@@ -415,7 +436,9 @@ def simulate(
             ctx = get_context("spawn")
             with (
                 _environment(_SINGLE_THREAD_ENV),
-                ProcessPoolExecutor(workers, ctx, initializer=_worker_init) as pool,
+                ProcessPoolExecutor(
+                    workers, ctx, initializer=_worker_init, initargs=(os.getpid(),)
+                ) as pool,
             ):
                 for _ in pool.map(_worker, [(s, i, specs[i]) for i in todo]):
                     bar.advance(task)
