@@ -71,6 +71,8 @@ def _os_line(exc: OSError, where: str | os.PathLike | None = None) -> str:
     problem = exc.strerror or str(exc) or type(exc).__name__
     if exc.errno in (errno.ENOSPC, errno.EDQUOT):
         problem = "no space left on the device; free some, or write elsewhere"
+    elif exc.errno in (errno.EEXIST, errno.ENOTDIR):
+        problem = "a file stands where a folder belongs; choose another out= or move the file"
     elif exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
         problem = f"{problem.lower()}; write elsewhere (out= or paths.output_dir=)"
     return f"{name}: {problem}" if name else problem

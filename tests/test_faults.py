@@ -416,3 +416,14 @@ def _zombie(pid: int) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
     except OSError:
         return True
+
+
+def test_an_output_folder_that_is_a_file_is_one_line(trained, tmp_path):
+    (tmp_path / "afile").write_text("mine\n")
+    ckpt = trained[1]["best_checkpoint"]
+    line = _one_line_error(_app("export", f"ckpt_path={ckpt}", "out=afile", cwd=tmp_path))
+    assert (
+        line
+        == "error: afile: a file stands where a folder belongs; choose another out= or move the file"
+    )
+    assert (tmp_path / "afile").read_text() == "mine\n"
