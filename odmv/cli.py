@@ -213,6 +213,8 @@ def hydra_line(exc: BaseException) -> str:
     """One line for an error of Hydra's composition, naming the key and the valid choices."""
     from hydra.errors import ConfigCompositionException, MissingConfigException
 
+    if isinstance(exc, OSError):  # writing the run folder's .hydra: name that folder
+        return _os_line(exc, _hydra_output_dir(exc))
     if isinstance(exc, MissingConfigException) and exc.missing_cfg_file and exc.options:
         group, _, name = str(exc.missing_cfg_file).rpartition("/")
         return f"{group}={name}: no such {group}; choose one of {', '.join(exc.options)}"
@@ -228,6 +230,17 @@ def hydra_line(exc: BaseException) -> str:
                 f"; did you mean {'.'.join(filter(None, [prefix, close[0]]))}?" if close else ""
             )
     return _one_line(exc)
+
+
+def _hydra_output_dir(exc: BaseException) -> str | None:
+    """The run folder of the Hydra job that raised ``exc`` (Hydra's ``run_job`` has reset its
+    config by the time the error arrives here, so it is read from that frame)."""
+    tb = exc.__traceback__
+    while tb is not None:
+        if tb.tb_frame.f_code.co_name == "run_job" and "output_dir" in tb.tb_frame.f_locals:
+            return str(tb.tb_frame.f_locals["output_dir"])
+        tb = tb.tb_next
+    return None
 
 
 def unknown_added_keys() -> str | None:

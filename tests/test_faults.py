@@ -424,3 +424,24 @@ def test_an_output_folder_that_is_a_file_is_one_line(trained, tmp_path):
     line = _one_line_error(_app("export", f"ckpt_path={ckpt}", "out=afile", cwd=tmp_path))
     assert line.startswith("error: afile: a file stands where a folder belongs; choose another")
     assert (tmp_path / "afile").read_text() == "mine\n"
+
+
+def _fill(disk: Path) -> None:
+    with (disk / "filler").open("wb") as fh:
+        try:
+            while True:
+                fh.write(b"\0" * 65536)
+                fh.flush()
+        except OSError:
+            pass
+
+
+def test_hydra_writing_onto_a_full_or_read_only_disk_is_one_line(
+    small_disk, read_only_disk, tiny_dataset, tmp_path
+):
+    _fill(small_disk)
+    for disk, problem in ((small_disk, "no space left"), (read_only_disk, "read-only")):
+        run = disk / "run"
+        args = [*tiny_overrides(tiny_dataset, run), f"hydra.run.dir={run}"]
+        line = _one_line_error(_app("train", *args, cwd=tmp_path))
+        assert problem in line.lower() and str(disk) in line
