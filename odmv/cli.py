@@ -118,6 +118,16 @@ def remove_if_empty(folder: Path | None) -> None:
             parent.rmdir()
 
 
+class Interrupted(Exception):
+    """A run stopped by a signal (SIGTERM from a scheduler or ``kill``): one line naming the
+    run and how to continue it, and the shell's status for that signal (128 + its number), so
+    a script or SLURM does not count the run as finished."""
+
+    def __init__(self, message: str, signal_number: int):
+        super().__init__(message)
+        self.exit_status = 128 + signal_number
+
+
 @dataclass(frozen=True)
 class JobFailed:
     """What a multirun job's app returns instead of exiting: the sweep goes on with its other
@@ -135,7 +145,7 @@ def run_app(
     quiet_lightning()
     try:
         return fn()
-    except (ValueError, OSError, *_WRAPPERS) as exc:
+    except (ValueError, OSError, Interrupted, *_WRAPPERS) as exc:
         if traceback_wanted():
             raise
         folders = run_dir if isinstance(run_dir, list) else [run_dir] if run_dir else []
@@ -147,7 +157,7 @@ def run_app(
             remove_if_empty(Path(folder))
         if in_multirun():
             return JobFailed(line)
-        sys.exit(2)
+        sys.exit(getattr(exc, "exit_status", 2))
 
 
 def traceback_wanted() -> bool:

@@ -548,8 +548,9 @@ def write_outputs(
 def main(cfg: DictConfig) -> None:
     # a folder the user named is theirs: never removed, even when the prediction fails
     results = run_app(lambda: predict(cfg), None if cfg.out else cfg.paths.output_dir)
-    if len(results) == 1:
-        print(f"depth (mm): {results[0]['depth']}\npoint cloud: {results[0]['points']}")
+    if len(results) == 1:  # (method=psp without a calibration wrote the phase only)
+        names = {"depth": "depth (mm)", "points": "point cloud", "phase": "phase (rad)"}
+        print("\n".join(f"{names[k]}: {results[0][k]}" for k in names if results[0].get(k)))
 
 
 if __name__ == "__main__":

@@ -9,11 +9,13 @@ with the run's overrides) into the run folder; multiruns also collect every job 
 from __future__ import annotations
 
 import shutil
+import signal
 from pathlib import Path
 
 import hydra
 import lightning as L
 import torch
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
 from odmv.checkpoint import (
@@ -24,6 +26,7 @@ from odmv.checkpoint import (
     read_checkpoint,
 )
 from odmv.cli import (
+    Interrupted,
     JobFailed,
     app,
     in_multirun,
@@ -169,7 +172,14 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
         check_weights(cfg.ckpt_path, ckpt["state_dict"], module.state_dict())
     elif cfg.get("init_from"):  # a resumed fine-tune continues from its own checkpoint instead
         module.load_state_dict(initial_weights(cfg.init_from, module.state_dict()))
-    trainer.fit(module, datamodule=dm, ckpt_path=cfg.ckpt_path, weights_only=True)
+    try:
+        trainer.fit(module, datamodule=dm, ckpt_path=cfg.ckpt_path, weights_only=True)
+    except SIGTERMException:  # Lightning's is a SystemExit without a status: exit 0
+        raise Interrupted(
+            f"{out_dir}: stopped by SIGTERM in epoch {trainer.current_epoch}; resume={out_dir} "
+            "continues from the last finished epoch (checkpoints/last.ckpt)",
+            signal.SIGTERM,
+        ) from None
     train_seconds = module.train_seconds()  # a resumed run's included
     if trainer.is_global_zero:  # DDP: one process writes the run's files
         dm.save_split(out_dir / "split.json")

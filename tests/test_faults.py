@@ -445,3 +445,23 @@ def test_hydra_writing_onto_a_full_or_read_only_disk_is_one_line(
         args = [*tiny_overrides(tiny_dataset, run), f"hydra.run.dir={run}"]
         line = _one_line_error(_app("train", *args, cwd=tmp_path))
         assert problem in line.lower() and str(disk) in line
+
+
+def test_sigterm_stops_a_training_with_143_and_says_how_to_resume(tiny_dataset, tmp_path):
+    run = tmp_path / "run"
+    args = [*tiny_overrides(tiny_dataset, run), "trainer.max_epochs=200", f"hydra.run.dir={run}"]
+    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    proc = subprocess.Popen(
+        [PY, "-m", "odmv.train", *args], cwd=tmp_path, env=env, stderr=subprocess.PIPE, text=True
+    )
+    last = run / "checkpoints" / "last.ckpt"
+    while not last.exists() and proc.poll() is None:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err[-2000:]
+    line = err.strip().splitlines()[-1]
+    assert line.startswith(f"error: {run}: stopped by SIGTERM in epoch ")
+    assert f"resume={run} continues" in line
+    assert torch.load(last, weights_only=True)["epoch"] >= 0  # the last epoch's, whole
+    assert not (run / "run.lock").exists() and "Interrupted" in (run / "failed.txt").read_text()

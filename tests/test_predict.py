@@ -142,6 +142,12 @@ def test_classical_method_on_a_scene_and_on_loose_images(tiny_dataset, tmp_path)
         ["method=psp", f"input={loose}", f"out={tmp_path / 'b'}", f"manifest={tiny_dataset}"],
     )
     np.testing.assert_array_equal(read_channel(predict(cfg)[0]["depth"], "Z"), depth)
+    done = subprocess.run(  # no calibration: the phase only, said as the app's summary
+        [sys.executable, "-m", "odmv.predict", "method=psp", f"input={loose}", "out=c"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip().splitlines()[-1] == "phase (rad): c/right_phase.exr"
 
 
 def test_psp_on_a_dataset_without_sequences_says_what_it_needs(tmp_path):
