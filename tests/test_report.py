@@ -1,8 +1,10 @@
 """The report's verdicts on the paper's claims, from run metrics (no training needed)."""
 
+import shutil
 from pathlib import Path
 
 import pytest
+from helpers import compose_config
 
 from odmv.report import (
     Run,
@@ -167,3 +169,20 @@ def test_odmvnet_at_another_width_is_judged_against_the_baseline_of_its_size():
     for r in runs:  # records without sizes: no peer, no claim
         r.metrics.pop("parameters")
     assert not any(c.startswith(w24) for c in _claims(runs))
+
+
+def test_a_demo_run_with_its_evaluation_folder_is_one_run(trained, tmp_path):
+    """The demo writes outputs/demo/<time>/ (the run) and its evaluation/ (odmv.evaluate's
+    metrics of the same checkpoint): the report takes the run and passes over the evaluation."""
+    from odmv.evaluate import evaluate
+    from odmv.study.results import find_runs
+
+    run = shutil.copytree(trained[0], tmp_path / "demo" / "2026-12-06_08-00-00")
+    ckpt = run / "checkpoints" / Path(trained[1]["best_checkpoint"]).name
+    cfg = compose_config(
+        "evaluate",
+        [f"ckpt_path={ckpt}", f"paths.output_dir={run / 'evaluation'}", "figures=0"],
+    )
+    evaluate(cfg)
+    runs, pending = find_runs([tmp_path / "demo"])
+    assert [r.folder for r in runs] == [run] and pending == []

@@ -92,6 +92,8 @@ def find_runs(paths: list[Path]) -> tuple[list[Run], list[Path]]:
                 metrics = json.loads((folder / METRICS_JSON).read_text())
             except (OSError, json.JSONDecodeError) as e:
                 raise ReportError(f"{folder / METRICS_JSON}: unreadable ({e})") from None
+            if "test/mae_mm" in metrics and "model" not in metrics:
+                continue  # odmv.evaluate's of a checkpoint (the demo's evaluation/), not a run
             if "test/mae_mm" not in metrics or "model" not in metrics:
                 raise ReportError(f"{folder / METRICS_JSON}: not a test result of odmv.train")
             runs.append(Run(folder, metrics | _heldout(folder)))
