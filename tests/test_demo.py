@@ -1,0 +1,28 @@
+"""The demo's closing lines: the commands that continue from its run, each run as printed."""
+
+import shlex
+import shutil
+import subprocess
+from pathlib import Path
+
+from odmv.demo import next_steps
+
+
+def test_the_commands_the_demo_prints_work_as_printed(trained, tmp_path):
+    run = shutil.copytree(trained[0], tmp_path / "outputs" / "demo" / "2026-12-06_08-00-00")
+    ckpt = run / "checkpoints" / Path(trained[1]["best_checkpoint"]).name
+    lines = next_steps(run, ckpt)
+    assert [line.split()[2] for line in lines] == [
+        "odmv.predict",
+        "odmv.evaluate",
+        "odmv.export",
+        "odmv.report",
+    ]
+    for line in lines:
+        args = shlex.split(line)
+        args[0] = str(Path(args[0]).absolute()) if Path(args[0]).exists() else args[0]
+        done = subprocess.run(args, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+        assert done.returncode == 0, f"{line}\n{done.stderr[-2000:]}"
+    assert (run / "prediction" / "depth.exr").is_file()
+    assert (run / "onnx" / "model.onnx").is_file()
+    assert (run / "report" / "tables.md").is_file()
