@@ -14,7 +14,9 @@ $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet $(TORCH)
-	$(BIN)/pip install --quiet -e .[dev]
+	# setuptools warns about folders named like the package on every editable install of a
+	# flat layout; odmv/ is the package itself, so the box says nothing here
+	PYTHONWARNINGS='ignore:Editable installation' $(BIN)/pip install --quiet -e .[dev]
 	touch $@
 
 test: install
