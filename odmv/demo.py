@@ -23,7 +23,14 @@ def main(argv: list[str]) -> int:
     t0 = time.perf_counter()
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose(
-            "train", overrides=["experiment=quickstart", f"paths.output_dir={out}", *argv]
+            "train",
+            # one figure per quantity: the evaluation's table below, not also Lightning's
+            overrides=[
+                "experiment=quickstart",
+                f"paths.output_dir={out}",
+                "+test_table=false",
+                *argv,
+            ],
         )
         metrics = train(cfg)
         ecfg = compose(

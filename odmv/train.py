@@ -190,7 +190,13 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
     if cfg.test:
         best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
         module.test_dir = out_dir
-        results = trainer.test(module, datamodule=dm, ckpt_path=best or None, weights_only=True)
+        results = trainer.test(
+            module,
+            datamodule=dm,
+            ckpt_path=best or None,
+            weights_only=True,
+            verbose=cfg.get("test_table", True),  # the demo prints its evaluation's instead
+        )
         metrics.update({k: float(v) for k, v in results[0].items()})
         overrides = task_overrides()
         metrics.update(
