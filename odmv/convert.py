@@ -178,7 +178,7 @@ def fppmlbench(src: Path, invalid_at_or_below: float = 0.0) -> Iterator[Sample]:
         if key is None:
             raise ConvertError(f"{mat}: variables {keys}, none named 'depth'")
         image = read_image(png)
-        yield label, {"right": _scaled(image)}, _invalid(data[key], invalid_at_or_below)
+        yield label, {"right": _stored(image)}, _invalid(data[key], invalid_at_or_below)
 
 
 def folder(src: Path, depth_scale: float = 1.0) -> Iterator[Sample]:
@@ -196,13 +196,23 @@ def folder(src: Path, depth_scale: float = 1.0) -> Iterator[Sample]:
             path = find_view_image(scene, v)
             if path is None:
                 raise ConvertError(f"{scene}: no {v}.<ext> (the first scene has {views})")
-            images[v] = _scaled(read_image(path))
+            images[v] = _stored(read_image(path))
         yield label, images, _folder_depth(scene, depth_scale)
 
 
 def _scaled(image) -> np.ndarray:
     """An image file's values over its full scale (integer files); floats as stored."""
     return image.data if image.full_scale == 1 else image.data / np.float32(image.full_scale)
+
+
+def _stored(image) -> np.ndarray:
+    """An image file's values in their stored type (8- or 16-bit integers, floats), so that
+    :func:`intensity` scales them and says how (an integer file divided by its full scale)."""
+    if image.full_scale == 255:
+        return image.data.astype(np.uint8)
+    if image.full_scale == 65535:
+        return image.data.astype(np.uint16)
+    return image.data
 
 
 def _folder_depth(scene: Path, depth_scale: float) -> np.ndarray:

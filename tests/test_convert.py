@@ -71,13 +71,22 @@ def _folder(src, h=32, w=32):
 WRITERS = {"nguyen2020": _nguyen, "uhrnet": _uhrnet, "fppmlbench": _fppmlbench, "folder": _folder}
 
 
+SAID = {  # how each source's intensities are stored, as convert says it
+    "nguyen2020": "divided by 255 (floats above 1.5)",
+    "uhrnet": "as stored (floats in [0, 1])",
+    "fppmlbench": "divided by 255",
+    "folder": "divided by 65535",  # 16-bit PNG files
+}
+
+
 @pytest.mark.parametrize("fmt", list(WRITERS))
-def test_import_validates_and_trains(fmt, tmp_path):
+def test_import_validates_and_trains(fmt, tmp_path, capsys):
     src = tmp_path / "src"
     src.mkdir()
     size = WRITERS[fmt](src)
     out = tmp_path / "dataset"
     m = convert(fmt, src, out)
+    assert f"intensity: {src}: {SAID[fmt]}\n" in capsys.readouterr().out
     assert (m.height_px, m.width_px) == size
     report = validate(out)
     assert report.ok, report.problems
