@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import shutil
 import signal
+import sys
 from pathlib import Path
 
 import hydra
@@ -41,7 +42,7 @@ from odmv.ema import WeightEMA
 from odmv.io.atomic import write_json, write_text
 from odmv.io.runfolder import CONFIG, METRICS
 from odmv.module import FPPModule
-from odmv.pace import CpuPace, heavy_on_cpu
+from odmv.pace import CpuPace, EpochLine, busy_cores_note, heavy_on_cpu
 from odmv.provenance import provenance
 from odmv.runlock import check_new_run, holding
 from odmv.sweep import append_row
@@ -101,6 +102,8 @@ def build(cfg: DictConfig):
         callbacks.append(WeightEMA(cfg.ema))
     if heavy_on_cpu(cfg, str(cfg.trainer.get("accelerator", "auto"))):
         callbacks.append(CpuPace(cfg))
+    if not cfg.trainer.get("enable_progress_bar", True) or not sys.stdout.isatty():
+        callbacks.append(EpochLine())
     trainer = hydra.utils.instantiate(
         cfg.trainer, logger=loggers or False, callbacks=callbacks, plugins=[AtomicCheckpointIO()]
     )
@@ -150,6 +153,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
     checkpoint in a run folder (``ckpt_path=RUN/checkpoints/last.ckpt``) continues that
     folder: its TensorBoard and CSV logs, and its best checkpoint."""
     set_threads(cfg.get("threads"))
+    if str(cfg.trainer.get("accelerator", "auto")) == "cpu" or not torch.cuda.is_available():
+        note = busy_cores_note(torch.get_num_threads())
+        if note:
+            rank_zero_print(note)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     ckpt = read_checkpoint(cfg.ckpt_path) if cfg.ckpt_path else None
     continuing = ckpt is not None and (run := run_folder_of(cfg.ckpt_path)) is not None

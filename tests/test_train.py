@@ -376,3 +376,23 @@ def test_compile_trains_the_same_net_and_saves_plain_weights(tiny_dataset, tmp_p
     assert not any("_orig_mod" in k for k in ckpt["state_dict"])  # the plain net's names
     assert ckpt["hyper_parameters"]["compile"] == "default"
     assert load_module(compiled["best_checkpoint"])._compiled is None  # evaluated eagerly
+
+
+def test_a_run_without_a_progress_bar_prints_a_line_per_epoch(tiny_dataset, tmp_path, capsys):
+    out = tmp_path / "run"
+    train(compose_config("train", tiny_overrides(tiny_dataset, out, "trainer.max_epochs=2")))
+    lines = [x for x in capsys.readouterr().out.splitlines() if x.startswith("epoch ")]
+    assert [x.split(":")[0] for x in lines] == ["epoch 1/2", "epoch 2/2"]
+    assert "val MAE" in lines[0] and lines[-1].endswith("about 0 min left")
+
+
+def test_a_busy_machine_is_said_with_what_to_do(monkeypatch):
+    import odmv.pace
+
+    monkeypatch.setattr(odmv.pace.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(odmv.pace.os, "getloadavg", lambda: (1.2, 1.0, 1.0))
+    note = odmv.pace.busy_cores_note(2)
+    assert note.startswith("the machine is busy (load 1.2 on 2 cores): 2 torch threads")
+    assert "threads=1" in note
+    monkeypatch.setattr(odmv.pace.os, "getloadavg", lambda: (0.3, 1.0, 1.0))
+    assert odmv.pace.busy_cores_note(2) is None
