@@ -27,7 +27,9 @@ class CpuPace(L.Callback):
         rank_zero_print(
             f"on the CPU: {cfg.model.name} at {cfg.data.resolution} px for "
             f"{cfg.trainer.max_epochs} epochs: a run of this size is meant for a GPU (about a "
-            "minute a step on a 2-core CPU at 480 px); experiment=quickstart (minutes) or "
+            f"minute a step on a 2-core CPU at 480 px). Next: {dataset_plan(cfg)}then the "
+            "first training step, after which it says how long the run takes here. Ctrl-C "
+            "stops it (a rerun continues a rendering); experiment=quickstart (minutes) or "
             "experiment=mini (under an hour a run) are the presets a CPU finishes"
         )
 
@@ -44,6 +46,29 @@ class CpuPace(L.Callback):
             f"the first step took {seconds:.1f} s here: {steps} steps take about "
             f"{seconds * steps / 3600:.1f} h on this machine"
         )
+
+
+def dataset_plan(cfg) -> str:
+    """What the run does to its data before the first step: render a synthetic dataset (how
+    many scenes and how much disk at most), or nothing."""
+    sim = cfg.data.get("simulate")
+    if sim is None:
+        return ""
+    from omegaconf import OmegaConf
+
+    from odmv.sim.writer import SimSettings, _size, scene_bytes_bound
+
+    settings = SimSettings.from_dict(
+        {**OmegaConf.to_container(sim, resolve=True), "out": str(cfg.data.root)}
+    )
+    if settings.complete():
+        return ""
+    need = _size(scene_bytes_bound(settings) * settings.scenes)
+    return (
+        f"rendering its dataset into {cfg.data.root} ({settings.scenes} scenes at "
+        f"{settings.height_px}x{settings.width_px} px, up to {need}; the simulator says how "
+        "long after its first scene), "
+    )
 
 
 def heavy_on_cpu(cfg, accelerator: str) -> bool:

@@ -396,3 +396,14 @@ def test_a_busy_machine_is_said_with_what_to_do(monkeypatch):
     assert "threads=1" in note
     monkeypatch.setattr(odmv.pace.os, "getloadavg", lambda: (0.3, 1.0, 1.0))
     assert odmv.pace.busy_cores_note(2) is None
+
+
+def test_the_paper_preset_on_a_cpu_says_what_comes_next_before_it_starts(tmp_path, capsys):
+    from odmv.pace import CpuPace
+
+    cfg = compose_config("train", ["model=odmvnet", "views=4", f"data.root={tmp_path / 'ds'}"])
+    CpuPace(cfg)
+    said = capsys.readouterr().out
+    assert said.startswith("on the CPU: odmvnet at 480 px for 200 epochs")
+    assert f"Next: rendering its dataset into {tmp_path / 'ds'} (200 scenes at 480x480 px" in said
+    assert "then the first training step" in said and not (tmp_path / "ds").exists()
