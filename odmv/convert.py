@@ -36,6 +36,7 @@ from collections.abc import Iterator
 from dataclasses import asdict, replace
 from functools import partial
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from omegaconf import DictConfig
@@ -73,7 +74,15 @@ class ConvertError(ValueError):
     """A one-line error naming the source file and its problem."""
 
 
-Sample = tuple[str, dict[str, np.ndarray], np.ndarray]  # split, {view: intensity}, depth (mm)
+class Sample(NamedTuple):
+    """One source sample: its split, {view: intensity}, depth (mm, NaN: no truth), the lit
+    masks where the source knows them, and its name in the source (a file, folder or index)."""
+
+    split: str | None
+    images: dict[str, np.ndarray]
+    depth: np.ndarray
+    source: str
+    lit: dict[str, np.ndarray] | None = None
 
 
 def crop16(a: np.ndarray) -> np.ndarray:
@@ -143,7 +152,8 @@ def nguyen2020(src: Path, invalid_at_or_below: float = 50.0) -> Iterator[Sample]
             ["train"] * (n - n // 10) + ["val"] * (n // 10) if part == "train" else ["test"] * n
         )
         for i in range(n):
-            yield labels[i], {"right": np.asarray(x[i])}, _invalid(z[i], invalid_at_or_below)
+            images, depth = {"right": np.asarray(x[i])}, _invalid(z[i], invalid_at_or_below)
+            yield Sample(labels[i], images, depth, f"X_{part}_fringe.npy[{i}]")
 
 
 def uhrnet(src: Path, invalid_at_or_below: float = -100.0) -> Iterator[Sample]:
@@ -155,8 +165,9 @@ def uhrnet(src: Path, invalid_at_or_below: float = -100.0) -> Iterator[Sample]:
     if not found:
         raise ConvertError(f"{src}: neither f1_80.npy with Z.npy nor fringe_pattern.npy")
     x, z = _paired_npy(*found[0])
-    for label, xi, zi in zip(_splits(len(x)), x, z, strict=True):
-        yield label, {"right": np.asarray(xi)}, _invalid(zi, invalid_at_or_below)
+    for i, (label, xi, zi) in enumerate(zip(_splits(len(x)), x, z, strict=True)):
+        images, depth = {"right": np.asarray(xi)}, _invalid(zi, invalid_at_or_below)
+        yield Sample(label, images, depth, f"{found[0][0].name}[{i}]")
 
 
 def fppmlbench(src: Path, invalid_at_or_below: float = 0.0) -> Iterator[Sample]:
@@ -178,7 +189,8 @@ def fppmlbench(src: Path, invalid_at_or_below: float = 0.0) -> Iterator[Sample]:
         if key is None:
             raise ConvertError(f"{mat}: variables {keys}, none named 'depth'")
         image = read_image(png)
-        yield label, {"right": _stored(image)}, _invalid(data[key], invalid_at_or_below)
+        depth = _invalid(data[key], invalid_at_or_below)
+        yield Sample(label, {"right": _stored(image)}, depth, str(png.relative_to(src)))
 
 
 def folder(src: Path, depth_scale: float = 1.0) -> Iterator[Sample]:
@@ -197,7 +209,7 @@ def folder(src: Path, depth_scale: float = 1.0) -> Iterator[Sample]:
             if path is None:
                 raise ConvertError(f"{scene}: no {v}.<ext> (the first scene has {views})")
             images[v] = _stored(read_image(path))
-        yield label, images, _folder_depth(scene, depth_scale)
+        yield Sample(label, images, _folder_depth(scene, depth_scale), scene.name)
 
 
 def _scaled(image) -> np.ndarray:
@@ -253,7 +265,7 @@ def sequences(src: Path, calibration=None, psp: PspOptions | None = None) -> Ite
             modulation = [wrapped_phase(s, options.shift_sign)[1] for s in view_stack]
             lit[v] = np.logical_and.reduce([b >= options.min_modulation for b in modulation])
         inputs = {v: view_stack[-1, first] for v, view_stack in zip(views, stack, strict=True)}
-        yield label, inputs, depth.astype(np.float32), lit
+        yield Sample(label, inputs, depth.astype(np.float32), scene.name, lit)
 
 
 def _read_sequence(scene: Path, names: list[str]) -> np.ndarray:
@@ -367,7 +379,7 @@ def _write(
     scenes, shape, views, hows = [], None, None, set()
     lo, hi = np.inf, -np.inf
     crop = crop16 if fmt != "sequences" else np.asarray  # a calibration describes the full size
-    for index, (label, images, depth, *lit) in enumerate(samples):
+    for index, (label, images, depth, source_name, lit) in enumerate(samples):
         sid = f"{index:06d}"
         depth = crop(depth)
         if shape is None:
@@ -391,12 +403,13 @@ def _write(
                 print(f"intensity: {src}: {how}", flush=True)
             write_exr(d / FRINGE_DIR / input_name(v), {FRINGE_CHANNEL: image})
         valid = np.isfinite(depth)
-        masks = lit[0] if lit else dict.fromkeys(views, valid)
+        masks = lit if lit else dict.fromkeys(views, valid)
         masks = {v: crop(masks[v]).astype(np.float16) for v in views}
         write_exr(d / DEPTH_FILE, {DEPTH_CHANNEL: depth})
         write_exr(d / LIT_FILE, masks)
         write_exr(d / FOOTPRINT_FILE, masks)
-        (d / SCENE_SPEC_FILE).write_text(json.dumps({"id": sid, "source_index": index}) + "\n")
+        spec = {"id": sid, "source_index": index, "source_name": source_name}
+        (d / SCENE_SPEC_FILE).write_text(json.dumps(spec) + "\n")
         scenes.append({"id": sid, "split": label})
     if not scenes or not np.isfinite(lo):
         raise ConvertError(f"{src}: no samples with valid depth")

@@ -71,6 +71,12 @@ def _folder(src, h=32, w=32):
 WRITERS = {"nguyen2020": _nguyen, "uhrnet": _uhrnet, "fppmlbench": _fppmlbench, "folder": _folder}
 
 
+FIRST_NAMES = {
+    "nguyen2020": "X_train_fringe.npy[0]",
+    "uhrnet": "f1_80.npy[0]",
+    "fppmlbench": "fringe/obj_000.png",
+    "folder": "part00",
+}
 SAID = {  # how each source's intensities are stored, as convert says it
     "nguyen2020": "divided by 255 (floats above 1.5)",
     "uhrnet": "as stored (floats in [0, 1])",
@@ -87,6 +93,8 @@ def test_import_validates_and_trains(fmt, tmp_path, capsys):
     out = tmp_path / "dataset"
     m = convert(fmt, src, out)
     assert f"intensity: {src}: {SAID[fmt]}\n" in capsys.readouterr().out
+    first = json.loads((out / "scenes" / "000000" / "scene.json").read_text())
+    assert first["source_name"] == FIRST_NAMES[fmt]  # the source's own name of the sample
     assert (m.height_px, m.width_px) == size
     report = validate(out)
     assert report.ok, report.problems
