@@ -180,3 +180,13 @@ def test_robustness_declares_views_missing_to_a_view_dropout_net(trained, tiny_d
     sets = {(r["model"], r["set"]) for r in DictReader(csv.splitlines())}
     assert ("odmvnet S=4, view_dropout=0.5", "missing:up") in sets
     assert ("odmvnet S=4", "missing:up") not in sets  # never told a view is missing: no row
+
+
+def test_the_robustness_study_says_its_cost_before_it_starts(tiny_dataset):
+    from odmv.sim.shifts import parse_shift
+    from odmv.study.robustness import plan
+
+    line = plan(tiny_dataset, [parse_shift("noise:2"), parse_shift("gloss:0.5")], 100, 2, True)
+    assert line.startswith("robustness: 3 sets of 100 scenes at 64x64 px (the nominal twin and 2")
+    assert "each scored with 2 run(s) and the classical method" in line
+    assert " MB;" in line or " GB;" in line

@@ -28,6 +28,7 @@ import argparse
 import functools
 import glob
 import json
+import time
 from pathlib import Path
 
 import matplotlib
@@ -104,9 +105,10 @@ def score_run(
             for v in missing
             if v in (record.get("views") or [])
         ]
-    for label, shift, extra in sets:
-        if label in scores and scores[label].get("scenes") == scenes:
-            continue
+    todo = [s for s in sets if not (s[0] in scores and scores[s[0]].get("scenes") == scenes)]
+    t0 = time.perf_counter()
+    for k, (label, shift, extra) in enumerate(todo):
+        print(f"{run.name}: set {k + 1} of {len(todo)}, {label}", flush=True)
         data = shifted_set(source, shift, scenes)
         metrics = evaluate_on(run, data, threads, "robustness", extra)
         scores[label] = {k: v for k, v in metrics.items() if k.startswith("test/")} | {
@@ -114,8 +116,40 @@ def score_run(
             "dataset": metrics["dataset"],
         }
         write_json(path, scores)
-        print(f"{run.name} {label}: MAE {metrics['test/mae_mm']:.4f} mm", flush=True)
+        left = (time.perf_counter() - t0) / (k + 1) * (len(todo) - k - 1)
+        print(
+            f"{run.name} {label}: MAE {metrics['test/mae_mm']:.4f} mm (about {left / 60:.0f} min "
+            "left for this run)",
+            flush=True,
+        )
     return scores
+
+
+def plan(source: Path, shifts: list[Shift], scenes: int, runs: int, classical: bool) -> str:
+    """What the study will do before it starts: the sets it renders (full sequences, so the
+    classical method can score them too), their disk at most, and how many runs it scores."""
+    from odmv.io.manifest import load_manifest
+    from odmv.sim.writer import SimSettings, _size, scene_bytes_bound
+
+    m = load_manifest(source)
+    settings = SimSettings(
+        out=source,
+        scenes=scenes,
+        height_px=m.height_px,
+        width_px=m.width_px,
+        images="full",
+        views=tuple(m.views),
+        fringe=m.fringe,
+    )
+    sets = 1 + len(shifts)
+    need = _size(scene_bytes_bound(settings) * scenes * sets)
+    return (
+        f"robustness: {sets} sets of {scenes} scenes at {m.height_px}x{m.width_px} px (the "
+        f"nominal twin and {len(shifts)} shifts), rendered once beside {source} (about {need}; "
+        f"sets already there are reused), each scored with {runs} run(s)"
+        + (" and the classical method" if classical else "")
+        + "; a line per set says what is left"
+    )
 
 
 def score_classical(
@@ -134,6 +168,10 @@ def score_classical(
             m = classical_row(data, out, resolution=resolution)
         scores[shift.label()] = {k: v for k, v in m.items() if k.startswith("test/")}
     return scores
+
+
+def _dataset(run: Path) -> Path:
+    return Path(json.loads((run / METRICS).read_text())["dataset"])
 
 
 def _label(run: Path, metrics: dict) -> str:
@@ -371,6 +409,7 @@ def main(argv: list[str]) -> None:
         raise SystemExit(f"error: --missing {unknown[0]}: no such view; name {VIEW_NAMES}")
     rows: dict[str, list[dict]] = {}
     views: dict[str, list[str]] = {}
+    print(plan(_dataset(runs[0]), shifts, args.scenes, len(runs), args.classical), flush=True)
     for run in runs:
         metrics = json.loads((run / METRICS).read_text())
         label = _label(run, metrics)
@@ -379,7 +418,7 @@ def main(argv: list[str]) -> None:
             score_run(run, shifts, args.scenes, args.threads, tuple(args.missing))
         )
     if args.classical:
-        source = Path(json.loads((runs[0] / METRICS).read_text())["dataset"])
+        source = _dataset(runs[0])
         rows["classical (nominal calibration)"] = [score_classical(source, shifts, args.scenes)]
     if args.out:
         print(f"report: {write_tables(rows, shifts, args.out, views)}")
