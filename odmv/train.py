@@ -182,11 +182,11 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
     try:
         trainer.fit(module, datamodule=dm, ckpt_path=cfg.ckpt_path, weights_only=True)
     except SIGTERMException:  # Lightning's is a SystemExit without a status: exit 0
-        raise Interrupted(
-            f"{out_dir}: stopped by SIGTERM in epoch {trainer.current_epoch}; resume={out_dir} "
-            "continues from the last finished epoch (checkpoints/last.ckpt)",
-            signal.SIGTERM,
-        ) from None
+        raise _interrupted(out_dir, trainer, signal.SIGTERM) from None
+    except SystemExit:  # Lightning ends a Ctrl-C with exit(1) after its graceful shutdown
+        if not trainer.interrupted:
+            raise
+        raise _interrupted(out_dir, trainer, signal.SIGINT) from None
     train_seconds = module.train_seconds()  # a resumed run's included
     if trainer.is_global_zero:  # DDP: one process writes the run's files
         dm.save_split(out_dir / "split.json")
@@ -230,6 +230,15 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
                 {k: v for k, v in metrics.items() if not isinstance(v, list)},
             )
     return metrics
+
+
+def _interrupted(out_dir: Path, trainer: L.Trainer, sig: signal.Signals) -> Interrupted:
+    name = "Ctrl-C" if sig == signal.SIGINT else sig.name
+    return Interrupted(
+        f"{out_dir}: stopped by {name} in epoch {trainer.current_epoch}; resume={out_dir} "
+        "continues from the last finished epoch (checkpoints/last.ckpt)",
+        sig,
+    )
 
 
 def best_value(trainer: L.Trainer, name: str) -> float:

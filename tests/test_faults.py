@@ -447,9 +447,14 @@ def test_hydra_writing_onto_a_full_or_read_only_disk_is_one_line(
         assert problem in line.lower() and str(disk) in line
 
 
-def test_sigterm_stops_a_training_with_143_and_says_how_to_resume(tiny_dataset, tmp_path):
+@pytest.mark.parametrize(
+    "sig, status, name", [(signal.SIGTERM, 143, "SIGTERM"), (signal.SIGINT, 130, "Ctrl-C")]
+)
+def test_a_signal_stops_a_training_with_its_status_and_says_how_to_resume(
+    sig, status, name, tiny_dataset, tmp_path
+):
     run = tmp_path / "run"
-    args = [*tiny_overrides(tiny_dataset, run), "trainer.max_epochs=200", f"hydra.run.dir={run}"]
+    args = [*tiny_overrides(tiny_dataset, run), "trainer.max_epochs=200"]
     env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
     proc = subprocess.Popen(
         [PY, "-m", "odmv.train", *args], cwd=tmp_path, env=env, stderr=subprocess.PIPE, text=True
@@ -457,11 +462,12 @@ def test_sigterm_stops_a_training_with_143_and_says_how_to_resume(tiny_dataset, 
     last = run / "checkpoints" / "last.ckpt"
     while not last.exists() and proc.poll() is None:
         time.sleep(0.05)
-    proc.send_signal(signal.SIGTERM)
+    proc.send_signal(sig)
     _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 143, err[-2000:]
+    assert proc.returncode == status, err[-2000:]
     line = err.strip().splitlines()[-1]
-    assert line.startswith(f"error: {run}: stopped by SIGTERM in epoch ")
+    assert line.startswith(f"error: {run}: stopped by {name} in epoch ")
     assert f"resume={run} continues" in line
     assert torch.load(last, weights_only=True)["epoch"] >= 0  # the last epoch's, whole
     assert not (run / "run.lock").exists() and "Interrupted" in (run / "failed.txt").read_text()
+    assert not (tmp_path / "outputs").exists()  # no .hydra-only folder of Hydra's left behind
