@@ -50,9 +50,13 @@ _STARTUP_FILES = {
 _WRAPPERS = (OmegaConfBaseException, InstantiationException)
 
 
-def _one_line(exc: BaseException) -> str:
+def _one_line(exc: BaseException, where: str | os.PathLike | None = None) -> str:
+    from hydra.errors import MissingConfigException
+
+    if isinstance(exc, MissingConfigException):  # an OSError too, for Hydra
+        return hydra_line(exc)
     if isinstance(exc, OSError):
-        return _os_line(exc)
+        return _os_line(exc, where)
     key = None
     while isinstance(exc, _WRAPPERS) and exc.__cause__ is not None:
         key = key or getattr(exc, "full_key", None)
@@ -150,7 +154,7 @@ def run_app(
             raise
         folders = run_dir if isinstance(run_dir, list) else [run_dir] if run_dir else []
         where = folders[-1] if folders else None
-        line = _os_line(exc, where) if isinstance(exc, OSError) else _one_line(exc)
+        line = _one_line(exc, where)
         if rank_zero_only.rank == 0:  # DDP ranks fail alike; one line is enough
             print(f"error: {line}", file=sys.stderr)
         for folder in folders:
@@ -223,11 +227,13 @@ def hydra_line(exc: BaseException) -> str:
     """One line for an error of Hydra's composition, naming the key and the valid choices."""
     from hydra.errors import ConfigCompositionException, MissingConfigException
 
+    if isinstance(exc, MissingConfigException):  # (an OSError too, for Hydra)
+        if exc.missing_cfg_file and exc.options:
+            group, _, name = str(exc.missing_cfg_file).rpartition("/")
+            return f"{group}={name}: no such {group}; choose one of {', '.join(exc.options)}"
+        return str(exc).strip().splitlines()[0]
     if isinstance(exc, OSError):  # writing the run folder's .hydra: name that folder
         return _os_line(exc, _hydra_output_dir(exc))
-    if isinstance(exc, MissingConfigException) and exc.missing_cfg_file and exc.options:
-        group, _, name = str(exc.missing_cfg_file).rpartition("/")
-        return f"{group}={name}: no such {group}; choose one of {', '.join(exc.options)}"
     cause = exc.__cause__
     if isinstance(exc, ConfigCompositionException) and isinstance(cause, OmegaConfBaseException):
         key, parent = getattr(cause, "full_key", None), getattr(cause, "parent_node", None)
