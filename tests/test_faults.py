@@ -457,7 +457,13 @@ def test_a_signal_stops_a_training_with_its_status_and_says_how_to_resume(
     args = [*tiny_overrides(tiny_dataset, run), "trainer.max_epochs=200"]
     env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
     proc = subprocess.Popen(
-        [PY, "-m", "odmv.train", *args], cwd=tmp_path, env=env, stderr=subprocess.PIPE, text=True
+        [PY, "-m", "odmv.train", *args],
+        cwd=tmp_path,
+        env=env,
+        stderr=subprocess.PIPE,
+        text=True,
+        # a shell's background job ignores SIGINT, and its children would inherit that
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     last = run / "checkpoints" / "last.ckpt"
     while not last.exists() and proc.poll() is None:
