@@ -30,6 +30,9 @@ from hydra.errors import InstantiationException
 from lightning.pytorch.utilities import rank_zero_only
 from omegaconf.errors import OmegaConfBaseException
 
+from odmv.io.atomic import DISK_FULL
+from odmv.runlock import FAILED, LOCK
+
 T = TypeVar("T")
 
 #: What Hydra and the loggers write into a run folder before the first checkpoint; a folder
@@ -42,8 +45,8 @@ _STARTUP_FILES = {
     "predict.yaml",
     "csv",
     "tensorboard",
-    "run.lock",
-    "failed.txt",
+    LOCK,
+    FAILED,
 }
 
 
@@ -73,7 +76,7 @@ def _os_line(exc: OSError, where: str | os.PathLike | None = None) -> str:
     """``<file>: <problem>`` for an OSError; a full disk also says what to do."""
     name = exc.filename or where
     problem = exc.strerror or str(exc) or type(exc).__name__
-    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+    if exc.errno in DISK_FULL:
         problem = "no space left on the device; free some, or write elsewhere"
     elif exc.errno in (errno.EEXIST, errno.ENOTDIR):
         problem = "a file stands where a folder belongs; choose another out= or move the file"

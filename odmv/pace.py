@@ -56,14 +56,14 @@ def dataset_plan(cfg) -> str:
         return ""
     from omegaconf import OmegaConf
 
-    from odmv.sim.writer import SimSettings, _size, scene_bytes_bound
+    from odmv.sim.writer import SimSettings, human_size, scene_bytes_bound
 
     settings = SimSettings.from_dict(
         {**OmegaConf.to_container(sim, resolve=True), "out": str(cfg.data.root)}
     )
     if settings.complete():
         return ""
-    need = _size(scene_bytes_bound(settings) * settings.scenes)
+    need = human_size(scene_bytes_bound(settings) * settings.scenes)
     return (
         f"rendering its dataset into {cfg.data.root} ({settings.scenes} scenes at "
         f"{settings.height_px}x{settings.width_px} px, up to {need}; the simulator says how "

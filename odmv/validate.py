@@ -89,10 +89,12 @@ def _check_values(path: Path, data: dict[str, np.ndarray], nan_depth: bool) -> s
 
 
 def _check_intensity(path: Path, a: np.ndarray) -> str | None:
-    """Fringe images hold linear intensity (odmv.io.images.intensity_problem)."""
+    """Fringe images hold linear intensity (odmv.io.images.intensity_problem): a rendered or
+    converted dataset's are never negative."""
     return intensity_problem(
         path,
         a,
+        floor=0.0,
         negative="an import of [-1, 1] data needs python -m odmv.convert ... intensity=auto",
         bright="integer values not divided by their full scale; convert with intensity=auto",
     )

@@ -19,7 +19,7 @@ import numpy as np
 
 from odmv.data.dataset import SampleSpec
 from odmv.data.subsets import MASKS
-from odmv.io.atomic import DiskFullError, remove_abandoned
+from odmv.io.atomic import DISK_FULL, DiskFullError, remove_abandoned
 
 _ARRAYS = {
     "fringes": np.float32,
@@ -51,7 +51,7 @@ def _allocated(path: Path, dtype, shape: tuple[int, ...]) -> np.memmap:
         with path.open("r+b") as fh:
             os.posix_fallocate(fh.fileno(), 0, path.stat().st_size)
     except OSError as e:
-        if e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+        if e.errno in DISK_FULL:
             need = path.stat().st_size / 2**20
             raise DiskFullError(
                 f"{path.parent.parent}: no space left for the decoded-array cache ({path.name} "
@@ -60,7 +60,6 @@ def _allocated(path: Path, dtype, shape: tuple[int, ...]) -> np.memmap:
         if e.errno not in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
             raise
     return array
-    return True
 
 
 class ArrayCache:

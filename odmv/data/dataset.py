@@ -22,6 +22,7 @@ from odmv.data.subsets import MASKS, footprint_from_depth, subset_masks
 from odmv.data.views import with_availability
 from odmv.geometry import triangulation_maps
 from odmv.io.exr import ExrError, read_exr
+from odmv.io.images import NO_INTENSITY_BELOW
 from odmv.io.manifest import (
     DEPTH_CHANNEL,
     DEPTH_FILE,
@@ -221,7 +222,7 @@ def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]
         a = image(path, FRINGE_CHANNEL)
         if not np.isfinite(a).all():  # would train to NaN on every metric
             raise DataError(f"{path}: {int((~np.isfinite(a)).sum())} non-finite intensity values")
-        if a.min() < -1.01:  # what a corrupted file decodes to, never an intensity
+        if a.min() < NO_INTENSITY_BELOW:  # what a corrupted file decodes to
             raise DataError(
                 f"{path}: intensities down to {a.min():.3g}, which no camera records (a "
                 "corrupted file?); render or convert the scene again"

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 #: errors that mean the target's file system has no room for it
-_FULL = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
+DISK_FULL = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
 
 
 class DiskFullError(ValueError):
@@ -80,7 +80,7 @@ def write_atomic(path: str | os.PathLike, write: Callable[[Path], object]) -> Pa
         os.replace(tmp, path)
     except Exception as e:
         # torch.save and OpenEXR report a full disk as RuntimeErrors of their own wording
-        full = e.errno in _FULL if isinstance(e, OSError) else _no_room(path.parent)
+        full = e.errno in DISK_FULL if isinstance(e, OSError) else _no_room(path.parent)
         if full:
             size = tmp.stat().st_size if tmp.exists() else 0
             free = shutil.disk_usage(path.parent).free

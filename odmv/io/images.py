@@ -96,25 +96,33 @@ def read_image(path: str | Path) -> Image:
 #: 16-bit, a weak projector) still counts.
 MIN_FRINGE_CONTRAST = 0.1
 DARK_LEVEL = 0.01
+#: below this no data are an intensity at all (what a corrupted file decodes to)
+NO_INTENSITY_BELOW = -1.01
 
 
 def intensity_problem(
-    path: Path, a: np.ndarray, negative: str, bright: str, fringe: bool = False
+    path: Path,
+    a: np.ndarray,
+    negative: str,
+    bright: str,
+    fringe: bool = False,
+    floor: float = -0.01,
 ) -> str | None:
     """What is wrong with an image of linear intensity in full-scale units, or None: values
-    that are not finite, below zero (``negative`` says what to do; below -1 no data are
-    intensity at all), above 1.5 on more than 1 % of the pixels (``bright`` says what to do),
-    or, for a fringe image (``fringe``), no fringe at all."""
+    that are not finite, below ``floor`` (``negative`` says what to do; a capture's dark
+    subtraction may dip just below zero; below -1 no data are intensity at all), above 1.5 on
+    more than 1 % of the pixels (``bright`` says what to do), or, for a fringe image
+    (``fringe``), no fringe at all."""
     bad = int((~np.isfinite(a)).sum())
     if bad:
         return f"{path}: {bad} pixel(s) are not finite (NaN or infinite)"
     lo, hi = float(a.min(initial=0)), float(a.max(initial=0))
-    if lo < -1.01:
+    if lo < NO_INTENSITY_BELOW:
         return (
             f"{path}: intensities down to {lo:.3g}, which no camera records (a corrupted or "
             "foreign file?); capture, render or convert it again"
         )
-    if lo < -0.01:
+    if lo < floor:
         return f"{path}: fringe intensities in [{lo:.3g}, {hi:.3g}] are negative; {negative}"
     share = float((a > 1.5).mean())
     if share > 0.01:

@@ -472,19 +472,19 @@ def check_disk(out: Path, need_bytes: int, scenes: int, announce: bool) -> None:
     free = shutil.disk_usage(probe).free
     if need_bytes > free:
         raise SimulationError(
-            f"{out}: {scenes} scenes need up to {_size(need_bytes)} but only "
-            f"{_size(free)} are free there (choose another out=, fewer scenes, "
+            f"{out}: {scenes} scenes need up to {human_size(need_bytes)} but only "
+            f"{human_size(free)} are free there (choose another out=, fewer scenes, "
             "images=training or fringe_dtype=float16)"
         )
     if announce:
         print(
-            f"{out}: {scenes} scenes, up to {_size(need_bytes)} "
-            f"({_size(need_bytes / scenes)} each); {_size(free)} free",
+            f"{out}: {scenes} scenes, up to {human_size(need_bytes)} "
+            f"({human_size(need_bytes / scenes)} each); {human_size(free)} free",
             flush=True,
         )
 
 
-def _size(n_bytes: float) -> str:
+def human_size(n_bytes: float) -> str:
     return f"{n_bytes / 1e9:.1f} GB" if n_bytes >= 1e9 else f"{n_bytes / 1e6:.1f} MB"
 
 

@@ -129,7 +129,7 @@ def plan(source: Path, shifts: list[Shift], scenes: int, runs: int, classical: b
     """What the study will do before it starts: the sets it renders (full sequences, so the
     classical method can score them too), their disk at most, and how many runs it scores."""
     from odmv.io.manifest import load_manifest
-    from odmv.sim.writer import SimSettings, _size, scene_bytes_bound
+    from odmv.sim.writer import SimSettings, human_size, scene_bytes_bound
 
     m = load_manifest(source)
     settings = SimSettings(
@@ -142,7 +142,7 @@ def plan(source: Path, shifts: list[Shift], scenes: int, runs: int, classical: b
         fringe=m.fringe,
     )
     sets = 1 + len(shifts)
-    need = _size(scene_bytes_bound(settings) * scenes * sets)
+    need = human_size(scene_bytes_bound(settings) * scenes * sets)
     return (
         f"robustness: {sets} sets of {scenes} scenes at {m.height_px}x{m.width_px} px (the "
         f"nominal twin and {len(shifts)} shifts), rendered once beside {source} (about {need}; "
