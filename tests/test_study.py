@@ -103,6 +103,13 @@ def test_datasets_that_differ_only_in_training_scenes_share_one_twin(
         shifted_set(sources["nominal"], Shift("gamma", 1.5), 2),
     )
     assert json.loads((held / MANIFEST).read_text())["simulation"].get("randomize") is None
+    # without the classical method: the networks' images only, unless a full set is there
+    noise = Shift("noise", 2.0)
+    net_only = shifted_set(sources["nominal"], noise, 2, classical=False)
+    assert json.loads((net_only / MANIFEST).read_text())["images"] == "training"
+    full = shifted_set(sources["nominal"], noise, 2)
+    assert full != net_only and json.loads((full / MANIFEST).read_text())["images"] == "full"
+    assert shifted_set(sources["nominal"], noise, 2, classical=False) == full
 
 
 def test_robustness_rows_keep_randomized_and_dropout_trainings_apart(trained, tmp_path):
@@ -190,3 +197,5 @@ def test_the_robustness_study_says_its_cost_before_it_starts(tiny_dataset):
     assert line.startswith("robustness: 3 sets of 100 scenes at 64x64 px (the nominal twin and 2")
     assert "each scored with 2 run(s) and the classical method" in line
     assert " MB;" in line or " GB;" in line
+    cheap = plan(tiny_dataset, [parse_shift("noise:2")], 100, 1, False)
+    assert "the networks' images only" in cheap

@@ -36,14 +36,14 @@ class HeldoutError(ValueError):
     """A one-line error naming the dataset or run at fault."""
 
 
-def twin_dataset(
+def twin_settings(
     source: Path, name: str, scenes: int, seed: int, images: str, shift: Shift | None = None
-) -> Path:
-    """Render (or finish) beside dataset ``source`` a test-only twin of it: its rig, fringes,
+) -> SimSettings:
+    """The settings of a test-only twin of dataset ``source``, beside it: its rig, fringes,
     renderer and scene mix, ``scenes`` scenes drawn from ``seed``, under ``shift`` (None: the
-    nominal twin); returns its folder, ``name-KEY``. KEY hashes everything that sets the
-    twin's pixels, so datasets that differ only in their training scenes (randomized or
-    shifted) share one twin instead of rendering it again."""
+    nominal twin), in folder ``name-KEY``. KEY hashes everything that sets the twin's pixels,
+    so datasets that differ only in their training scenes (randomized or shifted) share one
+    twin instead of rendering it again."""
     try:
         m = json.loads((source / MANIFEST).read_text())
     except (OSError, json.JSONDecodeError) as e:
@@ -67,7 +67,16 @@ def twin_dataset(
         **({"shift": shift.to_dict()} if shift is not None and not shift.nominal else {}),
     }
     out = source.parent / f"{name}-{settings_hash(spec | {'rig': m['rig']})}"
-    settings = SimSettings.from_dict(spec | {"out": str(out)})
+    return SimSettings.from_dict(spec | {"out": str(out)})
+
+
+def twin_dataset(
+    source: Path, name: str, scenes: int, seed: int, images: str, shift: Shift | None = None
+) -> Path:
+    """Render (or finish) the twin of ``twin_settings``; returns its folder."""
+    settings = twin_settings(source, name, scenes, seed, images, shift)
+    out = Path(settings.out)
+    m = json.loads((source / MANIFEST).read_text())
     if not settings.complete():
         print(f"rendering {out} (once)", flush=True)
         simulate(settings, workers=1, progress=False)
