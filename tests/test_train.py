@@ -393,7 +393,7 @@ def test_a_busy_machine_is_said_with_what_to_do(monkeypatch):
     monkeypatch.setattr(odmv.pace.os, "getloadavg", lambda: (1.2, 1.0, 1.0))
     note = odmv.pace.busy_cores_note(2)
     assert note.startswith("the machine is busy (load 1.2 on 2 cores): 2 torch threads")
-    assert "threads=1" in note
+    assert "threads=1" in note and "OMP_WAIT_POLICY=PASSIVE" in note
     monkeypatch.setattr(odmv.pace.os, "getloadavg", lambda: (0.3, 1.0, 1.0))
     assert odmv.pace.busy_cores_note(2) is None
 
