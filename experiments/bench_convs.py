@@ -22,10 +22,10 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from odmv.bench import PRESETS, build_module, measure, preset_config, synthetic_batch
 from odmv.cli import quiet_lightning
 from odmv.models.blocks import _ReachableTaps, reachable_taps
-from odmv.module import net_input
+from odmv.training.bench import PRESETS, build_module, measure, preset_config, synthetic_batch
+from odmv.training.module import net_input
 
 Layer = collections.namedtuple("Layer", "x_shape w_shape padding stride dilation groups x_cl w_cl")
 

@@ -19,7 +19,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from odmv.bench import (
+from odmv.cli import quiet_lightning
+from odmv.deploy.onnx import DepthInMM, export_graph
+from odmv.training.bench import (
     PRESETS,
     build_module,
     input_size,
@@ -28,9 +30,7 @@ from odmv.bench import (
     preset_config,
     synthetic_batch,
 )
-from odmv.cli import quiet_lightning
-from odmv.export import DepthInMM, export_graph
-from odmv.module import net_input
+from odmv.training.module import net_input
 
 
 def _onnx_session(model: torch.nn.Module, example: torch.Tensor, device: torch.device):

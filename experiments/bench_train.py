@@ -31,7 +31,8 @@ import time
 import torch
 from omegaconf import OmegaConf
 
-from odmv.bench import (
+from odmv.cli import quiet_lightning
+from odmv.training.bench import (
     PRESETS,
     build_module,
     input_size,
@@ -41,9 +42,8 @@ from odmv.bench import (
     sync,
     synthetic_batch,
 )
-from odmv.cli import quiet_lightning
-from odmv.losses import LossWeights, composite_loss
-from odmv.module import net_input
+from odmv.training.losses import LossWeights, composite_loss
+from odmv.training.module import net_input
 
 
 def main() -> None:

@@ -19,10 +19,10 @@ import sys
 import torch
 from omegaconf import OmegaConf
 
-from odmv.bench import PRESETS, build_module, preset_config, synthetic_batch
 from odmv.cli import quiet_lightning
-from odmv.losses import LossWeights, composite_loss
-from odmv.module import net_input
+from odmv.training.bench import PRESETS, build_module, preset_config, synthetic_batch
+from odmv.training.losses import LossWeights, composite_loss
+from odmv.training.module import net_input
 
 
 def run(module, batch, weights, opt_cfg, bf16: bool, device) -> tuple[float, torch.Tensor, float]:

@@ -31,7 +31,7 @@ from lightning.pytorch.utilities import rank_zero_only
 from omegaconf.errors import OmegaConfBaseException
 
 from odmv.io.atomic import DISK_FULL
-from odmv.runlock import FAILED, LOCK
+from odmv.training.runlock import FAILED, LOCK
 
 T = TypeVar("T")
 
@@ -94,7 +94,7 @@ def quiet_lightning() -> None:
     # Lightning's own pytree helper builds torch's deprecated LeafSpec; nothing a user can act on
     warnings.filterwarnings("ignore", message=r".*isinstance\(treespec, LeafSpec\)")
     # the training loss is logged per epoch too, so an epoch shorter than the step interval
-    # still draws its curve (train/loss_epoch, odmv.module.FPPModule.training_step)
+    # still draws its curve (train/loss_epoch, odmv.training.module.FPPModule.training_step)
     warnings.filterwarnings("ignore", message=r"The number of training batches .* logging interval")
     # bf16-mixed keeps the weights in float32, so the summary's 32-bit size is the right one
     warnings.filterwarnings("ignore", message=r"Precision bf16-mixed is not supported by the model")
@@ -138,7 +138,8 @@ class Interrupted(Exception):
 @dataclass(frozen=True)
 class JobFailed:
     """What a multirun job's app returns instead of exiting: the sweep goes on with its other
-    jobs, odmv.sweep writes ``error`` into the job's results.csv row and exits with 2 at the end."""
+    jobs, odmv.training.sweep writes ``error`` into the job's results.csv row and exits with 2
+    at the end."""
 
     error: str
 

@@ -13,7 +13,7 @@ Formats (docs/dataset.md, "Importing datasets" and "A dataset from your own rig"
 - ``folder``: ``src/<scene>/<view>.<ext>`` images (odmv.io.images) and ``depth.<exr|npy|png>``
   per scene, depth <= 0 or NaN invalid (``depth_scale`` mm per stored unit).
 - ``sequences``: ``src/<scene>/`` holds each projector's phase-shifting sequences (named by
-  ``psp.*``, odmv.sequences); with ``calibration=`` the ground truth is their classical
+  ``psp.*``, odmv.classical.sequences); with ``calibration=`` the ground truth is their classical
   reconstruction (NaN where rejected) and the input one image of the finest frequency.
 
 Invalid pixels become NaN depth (the manifest declares ``invalid_depth``), and the lit and
@@ -41,10 +41,11 @@ from typing import NamedTuple
 import numpy as np
 from omegaconf import DictConfig
 
-from odmv.calibration import load_calibration
-from odmv.classical import reconstruct_scene
+from odmv.classical.fringe import wrapped_phase
+from odmv.classical.row import reconstruct_scene
+from odmv.classical.sequences import PspOptions, count_steps, read_stack, views_in
 from odmv.cli import app, run_app
-from odmv.fpp import wrapped_phase
+from odmv.io.calibration import load_calibration
 from odmv.io.exr import read_exr, write_exr
 from odmv.io.guard import refuse_inside
 from odmv.io.images import find_view_image, read_image
@@ -62,7 +63,6 @@ from odmv.io.manifest import (
     fringe_name,
 )
 from odmv.rig import VIEW_NAMES
-from odmv.sequences import PspOptions, count_steps, read_stack, views_in
 
 FORMATS = ("nguyen2020", "uhrnet", "fppmlbench", "folder", "sequences")
 INTENSITIES = ("auto", "as_is")
@@ -374,7 +374,7 @@ def _write(
         axis_px = proj.width_px if proj.phase_axis == "u" else proj.height_px
         periods_px = tuple(axis_px / p for p in psp.frequencies)
         fringe = FringeSpec(periods_px, psp.steps, False, len(periods_px) - 1, 0)
-        source["decoder"] = asdict(psp) | {"method": "odmv.classical.reconstruct_scene"}
+        source["decoder"] = asdict(psp) | {"method": "odmv.classical.row.reconstruct_scene"}
     input_name = partial(fringe_name, frequency=len(fringe.periods_px) - 1, step=0)
     scenes, shape, views, hows = [], None, None, set()
     lo, hi = np.inf, -np.inf

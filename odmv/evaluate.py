@@ -25,9 +25,9 @@ from odmv.data.views import MissingViews
 from odmv.io.atomic import write_json
 from odmv.io.manifest import MANIFEST
 from odmv.io.runfolder import METRICS, PREDICTIONS, SCENES_CSV
-from odmv.metrics import DepthErrors
-from odmv.module import batched, load_module
 from odmv.study.records import read_only
+from odmv.training.metrics import DepthErrors
+from odmv.training.module import batched, load_module
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402

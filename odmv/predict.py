@@ -2,7 +2,7 @@
 
 ``ckpt_path`` is a training checkpoint (run by PyTorch) or a ``model.onnx`` written by
 ``python -m odmv.export`` (run by ONNX Runtime); both give the same outputs. ``method=psp``
-instead reconstructs classically from full phase-shift sequences (odmv.classical), no net.
+instead reconstructs classically from full phase-shift sequences (odmv.classical.row), no net.
 
 ``input`` is one scene or many: a dataset scene folder (``DATASET/scenes/<id>``, calibration
 from its manifest), a folder of one image per view (``right.png``, ``up.tif``, ...: EXR, PNG,
@@ -26,13 +26,14 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
-from odmv.calibration import load_calibration
-from odmv.classical import decode_views, fused_depth, single_shot_depth, twin_options
+from odmv.classical.fringe import period_in_camera_px
+from odmv.classical.row import decode_views, fused_depth, single_shot_depth, twin_options
+from odmv.classical.sequences import PspOptions, count_steps, read_stack, views_in
 from odmv.cli import app, run_app
 from odmv.data.dataset import DataError, SampleSpec, check_spec, load_scene
-from odmv.fpp import period_in_camera_px
-from odmv.inference import load_predictor
+from odmv.deploy.inference import load_predictor
 from odmv.io.atomic import write_atomic, write_npy, write_text
+from odmv.io.calibration import load_calibration
 from odmv.io.exr import write_exr
 from odmv.io.guard import refuse_inside
 from odmv.io.images import (
@@ -51,7 +52,6 @@ from odmv.io.manifest import (
 )
 from odmv.io.pointcloud import point_cloud, write_ply
 from odmv.rig import VIEW_NAMES, Camera, Rig
-from odmv.sequences import PspOptions, count_steps, read_stack, views_in
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402

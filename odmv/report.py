@@ -19,7 +19,6 @@ from omegaconf import DictConfig
 
 from odmv.cli import app, run_app
 from odmv.io.atomic import write_csv, write_text
-from odmv.metrics import subset_suffix
 from odmv.study.captures import report_section
 from odmv.study.claims import claims_markdown
 from odmv.study.figures import FIGURE_SCENES, bar_chart, comparison_figures
@@ -35,6 +34,7 @@ from odmv.study.results import (
     fmt,
 )
 from odmv.study.tables import TITLES, Row
+from odmv.training.metrics import subset_suffix
 
 __all__ = ["ReportError", "Run", "build_tables", "claims_markdown", "write_report"]
 

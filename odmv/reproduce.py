@@ -33,12 +33,11 @@ import numpy as np
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig, OmegaConf
 
-from odmv.classical import CAPTURES, classical_row
+from odmv.classical.row import CAPTURES, classical_row
 from odmv.cli import app, run_app
 from odmv.config import compose_train
 from odmv.io.atomic import write_json, write_text
 from odmv.io.runfolder import CONFIG, METRICS, PREDICTIONS, ROBUSTNESS, SCENES_CSV
-from odmv.losses import OPTIONAL_TERMS, PHASE_TERMS
 from odmv.report import write_report
 from odmv.sim.shifts import parse_shift
 from odmv.study.figures import FIGURE_SCENES, pick_scenes
@@ -48,6 +47,7 @@ from odmv.study.results import Run
 from odmv.study.robustness import SHIFTS, score_run
 from odmv.study.summarize import summary_lines
 from odmv.study.tables import own_width
+from odmv.training.losses import OPTIONAL_TERMS, PHASE_TERMS
 
 CLASSICAL_DIR = "classical"
 STUDY = "study.md"  # the table of a study's own rows

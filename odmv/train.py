@@ -3,7 +3,7 @@
 A thin Hydra wrapper around :func:`train`, which tests call with a composed config. After
 fitting it tests the best checkpoint and writes ``metrics.json`` and ``metrics.csv`` (one row
 with the run's overrides) into the run folder; multiruns also collect every job into
-``results.csv`` in the sweep folder (odmv.sweep).
+``results.csv`` in the sweep folder (odmv.training.sweep).
 """
 
 from __future__ import annotations
@@ -19,13 +19,6 @@ import torch
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
-from odmv.checkpoint import (
-    AtomicCheckpointIO,
-    check_fits,
-    check_weights,
-    initial_weights,
-    read_checkpoint,
-)
 from odmv.cli import (
     Interrupted,
     JobFailed,
@@ -38,14 +31,21 @@ from odmv.cli import (
     task_overrides,
     tool,
 )
-from odmv.ema import WeightEMA
 from odmv.io.atomic import write_json, write_text
 from odmv.io.runfolder import CONFIG, METRICS
-from odmv.module import FPPModule
-from odmv.pace import CpuPace, EpochLine, busy_cores_note, heavy_on_cpu
-from odmv.provenance import provenance
-from odmv.runlock import check_new_run, holding
-from odmv.sweep import append_row
+from odmv.training.checkpoint import (
+    AtomicCheckpointIO,
+    check_fits,
+    check_weights,
+    initial_weights,
+    read_checkpoint,
+)
+from odmv.training.ema import WeightEMA
+from odmv.training.module import FPPModule
+from odmv.training.pace import CpuPace, EpochLine, busy_cores_note, heavy_on_cpu
+from odmv.training.provenance import provenance
+from odmv.training.runlock import check_new_run, holding
+from odmv.training.sweep import append_row
 
 
 def data_config(cfg: DictConfig) -> dict:
@@ -124,7 +124,7 @@ def resumed_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
     saved = run / ".hydra" / "config.yaml"
     if not saved.is_file():
         raise ValueError(f"resume: {run}: not a run folder (no .hydra/config.yaml)")
-    out = OmegaConf.load(saved)
+    out = _moved_targets(OmegaConf.load(saved))
     for override in overrides:
         key, _, value = override.partition("=")
         if key in ("resume", "ckpt_path"):
@@ -140,6 +140,23 @@ def resumed_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
 
 
 _MISSING = object()
+#: classes a run's saved config may name at the module they lived in before odmv/training/
+_MOVED = {"odmv.csv_logger.": "odmv.training.csv_logger.", "odmv.sweep.": "odmv.training.sweep."}
+
+
+def _moved_targets(cfg: DictConfig) -> DictConfig:
+    """A saved config with each ``_target_`` at its class's current module (older runs resume)."""
+
+    def walk(x):
+        if isinstance(x, dict):
+            t = x.get("_target_")
+            for old, new in _MOVED.items():
+                if isinstance(t, str) and t.startswith(old):
+                    x["_target_"] = new + t[len(old) :]
+            return {k: walk(v) for k, v in x.items()}
+        return [walk(v) for v in x] if isinstance(x, list) else x
+
+    return OmegaConf.create(walk(OmegaConf.to_container(cfg, resolve=False)))
 
 
 def cfg_value(cfg: DictConfig, key: str, text: str):

@@ -53,7 +53,7 @@ def compose_config(name, overrides):
 
 def calibration_of(rig, size):
     """The default rig written as an OpenCV-style calibration (pixel centres at integers)."""
-    from odmv.calibration import _WORLD_TO_CAMERA
+    from odmv.io.calibration import _WORLD_TO_CAMERA
 
     cam = rig.camera_at(*size)
     shift = np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])

@@ -1,5 +1,5 @@
 """The classical method on fewer images per projector, down to the network's one image
-(odmv.classical.Capture): the full capture is the classical row, and fewer images cost accuracy
+(odmv.classical.row.Capture): the full capture is the classical row, and fewer images cost accuracy
 or coverage, never correctness."""
 
 import dataclasses
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from helpers import compose_config
 
-from odmv.classical import CAPTURES, Capture, classical_row
+from odmv.classical.fringe import demodulate
+from odmv.classical.row import CAPTURES, Capture, classical_row
 from odmv.data.dataset import DataError
-from odmv.fpp import demodulate
 from odmv.io.exr import read_channel, write_exr
 from odmv.io.manifest import FringeSpec
 from odmv.predict import predict

@@ -11,10 +11,10 @@ import scipy.io
 from helpers import calibration_of, compose_config, tiny_overrides
 from PIL import Image as PILImage
 
+from odmv.classical.sequences import PspOptions
 from odmv.convert import ConvertError, convert
 from odmv.io.exr import read_channel
 from odmv.io.manifest import HEIGHT_QUANTITY, load_manifest
-from odmv.sequences import PspOptions
 from odmv.train import train
 from odmv.validate import validate
 

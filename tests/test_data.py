@@ -189,7 +189,7 @@ def test_hydra_groups_select_views_and_data(tmp_path):
 
 
 def test_phase_targets_match_the_phase_shifting_phase(tiny_dataset, tmp_path):
-    from odmv.fpp import wrapped_phase
+    from odmv.classical.fringe import wrapped_phase
 
     # the 8-period sequence: at 64 px the 64-period one is finer than a pixel
     dm = _dm(

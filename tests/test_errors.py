@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from odmv.io.exr import read_channel, write_exr
-from odmv.module import FPPModule, NonFiniteLossError
+from odmv.training.module import FPPModule, NonFiniteLossError
 
 
 def _train(tmp_path, *overrides, env=None):

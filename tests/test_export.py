@@ -8,11 +8,11 @@ import pytest
 import torch
 from helpers import compose_config, tiny_overrides
 
-from odmv.export import METADATA_KEY, export_onnx
+from odmv.deploy.onnx import METADATA_KEY, export_onnx
 from odmv.io.exr import read_channel
-from odmv.module import load_module
 from odmv.predict import predict
 from odmv.train import train
+from odmv.training.module import load_module
 
 
 @pytest.fixture(scope="module")

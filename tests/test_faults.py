@@ -91,8 +91,8 @@ def test_simulate_refuses_no_scenes(tmp_path):
 
 # ---------------------------------------------------------------- full and read-only disks
 def test_a_checkpoint_on_a_real_full_disk_is_one_line_and_keeps_the_old_one(small_disk):
-    from odmv.checkpoint import AtomicCheckpointIO
     from odmv.io.atomic import DiskFullError
+    from odmv.training.checkpoint import AtomicCheckpointIO
 
     target = small_disk / "last.ckpt"
     AtomicCheckpointIO().save_checkpoint({"w": torch.zeros(16)}, target)
@@ -291,8 +291,8 @@ def test_a_corrupted_fringe_is_named_by_training_and_the_validator(dataset_copy,
 
 # ---------------------------------------------------------------- a run folder is one run's
 def test_a_run_folder_belongs_to_one_run(trained, tiny_dataset, tmp_path):
-    from odmv.runlock import FAILED, LOCK, RunFolderError
     from odmv.train import train
+    from odmv.training.runlock import FAILED, LOCK, RunFolderError
 
     finished = shutil.copytree(trained[0], tmp_path / "finished")
     before = {p: p.read_bytes() for p in finished.rglob("*") if p.is_file()}

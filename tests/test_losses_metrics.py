@@ -3,8 +3,8 @@ import math
 import pytest
 import torch
 
-from odmv.losses import LossWeights, composite_loss, depth_loss
-from odmv.metrics import DepthErrors
+from odmv.training.losses import LossWeights, composite_loss, depth_loss
+from odmv.training.metrics import DepthErrors
 
 
 def test_depth_loss_is_zero_for_a_perfect_prediction_and_mixes_ssim_and_l1():

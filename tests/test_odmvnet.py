@@ -1,7 +1,6 @@
 import pytest
 import torch
 
-from odmv.losses import OPTIONAL_TERMS
 from odmv.models import ABLATION_ROWS, ODMVNet, count_parameters
 from odmv.models.blocks import (
     GATES,
@@ -12,6 +11,7 @@ from odmv.models.blocks import (
     ResBlock3d,
 )
 from odmv.models.odmvnet import ResidualViewEncoder
+from odmv.training.losses import OPTIONAL_TERMS
 
 
 def _tiny(**kw):

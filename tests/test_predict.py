@@ -184,7 +184,7 @@ def test_bad_images_are_named(tmp_path):
 def test_an_opencv_calibration_gives_the_rig_it_describes(trained, tiny_dataset, tmp_path):
     import yaml
 
-    from odmv.calibration import CalibrationError, load_calibration
+    from odmv.io.calibration import CalibrationError, load_calibration
     from odmv.io.manifest import load_manifest
 
     rig = load_manifest(tiny_dataset).rig

@@ -11,10 +11,10 @@ from odmv.config import CONF_DIR
 from odmv.data import FPPDataModule
 from odmv.data.reference import network_input, reference_mode, reference_phase
 from odmv.io.exr import read_channel
-from odmv.module import load_module
 from odmv.predict import predict
 from odmv.rig import VIEW_NAMES
 from odmv.train import train
+from odmv.training.module import load_module
 
 
 def test_reference_phase_is_the_flat_planes_phase():

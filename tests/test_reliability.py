@@ -16,13 +16,13 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from tensorboard.plugins.hparams import plugin_data_pb2
 
 import odmv.sim.writer as writer
-from odmv.checkpoint import CheckpointError
 from odmv.data.dataset import DataError
 from odmv.evaluate import evaluate, report
-from odmv.module import load_module
 from odmv.sim.scenes import SceneError
 from odmv.sim.writer import SimSettings, SimulationError, simulate
 from odmv.train import train
+from odmv.training.checkpoint import CheckpointError
+from odmv.training.module import load_module
 
 
 def _app(app, *args, cwd=None):
@@ -327,7 +327,7 @@ def test_a_full_disk_leaves_the_old_file_and_no_temporary_one(tmp_path):
 def test_training_on_a_full_disk_stops_with_one_line_and_no_half_checkpoint(
     tiny_dataset, tmp_path, monkeypatch
 ):
-    import odmv.checkpoint
+    import odmv.training.checkpoint
 
     real_save = torch.save
     saved = []
@@ -338,12 +338,12 @@ def test_training_on_a_full_disk_stops_with_one_line_and_no_half_checkpoint(
         saved.append(f)
         return real_save(obj, f, *a, **kw)
 
-    monkeypatch.setattr(odmv.checkpoint.torch, "save", save)
+    monkeypatch.setattr(odmv.training.checkpoint.torch, "save", save)
     cfg = compose_config("train", tiny_overrides(tiny_dataset, tmp_path / "run"))
     with pytest.raises(ValueError, match="no space left on") as info:
         train(cfg)
     assert "checkpoints" in str(info.value) and "\n" not in str(info.value)
-    monkeypatch.setattr(odmv.checkpoint.torch, "save", real_save)
+    monkeypatch.setattr(odmv.training.checkpoint.torch, "save", real_save)
     # the one checkpoint written is whole; nothing half-written lies beside it
     files = sorted((tmp_path / "run" / "checkpoints").iterdir())
     assert len(files) == 1 and not files[0].name.startswith(".")

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from helpers import CLEAN, FRINGE, RIG, render
 
+from odmv.classical.fringe import triangulate_depth, unwrap_temporal, wrapped_phase
 from odmv.data.augment import NEXT
-from odmv.fpp import triangulate_depth, unwrap_temporal, wrapped_phase
 from odmv.io.manifest import fringe_name
 from odmv.rig import VIEW_NAMES
 from odmv.sim.render import RenderConfig, render_scene

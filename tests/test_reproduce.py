@@ -13,12 +13,11 @@ from helpers import RIG, render
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from odmv.classical import CAPTURES, classical_row
+from odmv.classical.row import CAPTURES, classical_row
 from odmv.config import CONF_DIR, compose_train
 from odmv.config import contenders as contenders_of
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import footprint_from_depth, subset_masks
-from odmv.module import FPPModule
 from odmv.reproduce import (
     RECORD,
     ReproduceError,
@@ -31,6 +30,7 @@ from odmv.reproduce import (
 from odmv.rig import VIEW_NAMES
 from odmv.study.records import HELDOUT
 from odmv.study.tables import ABLATION, VIEWS, tables
+from odmv.training.module import FPPModule
 
 
 def test_depth_in_mm_under_bf16_autocast_matches_float32():
@@ -485,7 +485,7 @@ def test_a_run_records_its_commit_as_clean_while_result_records_change(tmp_path)
     to the code, so the rows after the first still record a clean commit."""
     import subprocess
 
-    from odmv.provenance import RESULTS, commit
+    from odmv.training.provenance import RESULTS, commit
 
     def git(*args):
         subprocess.run(["git", "-C", str(tmp_path), *args], check=True, capture_output=True)

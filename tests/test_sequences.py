@@ -9,12 +9,12 @@ import pytest
 from helpers import FRINGE, RIG, calibration_of, compose_config, render
 from PIL import Image as PILImage
 
-from odmv import fpp
+from odmv.classical import fringe as fpp
+from odmv.classical.sequences import PspOptions
 from odmv.data.dataset import DataError
 from odmv.io.exr import read_exr
 from odmv.io.manifest import fringe_name
 from odmv.predict import predict
-from odmv.sequences import PspOptions
 
 STEPS = FRINGE.steps
 PERIODS = [RIG.projectors()["right"].width_px / p for p in FRINGE.periods_px]  # 1, 8, 64

@@ -18,9 +18,9 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from odmv.evaluate import evaluate, report
 from odmv.io.exr import read_channel, write_exr
 from odmv.io.manifest import FringeSpec
-from odmv.module import load_module
 from odmv.predict import predict
 from odmv.train import train
+from odmv.training.module import load_module
 
 
 def test_train_writes_checkpoints_metrics_and_tensorboard(trained):
@@ -113,7 +113,7 @@ def test_init_from_starts_a_fine_tune_from_a_runs_best_weights(trained, tiny_dat
     """init_from=RUN: a new run whose first step starts from the run's best weights, with its
     own settings (view dropout), epochs and optimizer; weights of another net are refused in
     one line naming the checkpoint."""
-    from odmv.checkpoint import CheckpointError
+    from odmv.training.checkpoint import CheckpointError
 
     run, metrics = trained
     out = tmp_path / "finetune"
@@ -145,6 +145,11 @@ def test_a_run_named_by_paths_output_dir_holds_its_config_and_resumes(tiny_datas
     assert (run / ".hydra" / "config.yaml").is_file() and not (tmp_path / "outputs").exists()
     (command,) = [line.split()[1] for line in first.stdout.splitlines() if "TensorBoard:" in line]
     assert Path(tmp_path, command).is_file() or Path(command).is_file()
+    # a run saved before the training modules moved into odmv/training/ resumes as well
+    saved = run / ".hydra" / "config.yaml"
+    text = saved.read_text()
+    assert "odmv.training.csv_logger.CSVLogger" in text
+    saved.write_text(text.replace("odmv.training.csv_logger.", "odmv.csv_logger."))
     again = subprocess.run([*app, f"resume={run}", "trainer.max_epochs=2"], cwd=tmp_path,
                            capture_output=True, text=True, timeout=600)  # fmt: skip
     assert again.returncode == 0, again.stderr[-2000:]
@@ -387,19 +392,19 @@ def test_a_run_without_a_progress_bar_prints_a_line_per_epoch(tiny_dataset, tmp_
 
 
 def test_a_busy_machine_is_said_with_what_to_do(monkeypatch):
-    import odmv.pace
+    import odmv.training.pace
 
-    monkeypatch.setattr(odmv.pace.os, "cpu_count", lambda: 2)
-    monkeypatch.setattr(odmv.pace.os, "getloadavg", lambda: (1.2, 1.0, 1.0))
-    note = odmv.pace.busy_cores_note(2)
+    monkeypatch.setattr(odmv.training.pace.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(odmv.training.pace.os, "getloadavg", lambda: (1.2, 1.0, 1.0))
+    note = odmv.training.pace.busy_cores_note(2)
     assert note.startswith("the machine is busy (load 1.2 on 2 cores): 2 torch threads")
     assert "threads=1" in note and "OMP_WAIT_POLICY=PASSIVE" in note
-    monkeypatch.setattr(odmv.pace.os, "getloadavg", lambda: (0.3, 1.0, 1.0))
-    assert odmv.pace.busy_cores_note(2) is None
+    monkeypatch.setattr(odmv.training.pace.os, "getloadavg", lambda: (0.3, 1.0, 1.0))
+    assert odmv.training.pace.busy_cores_note(2) is None
 
 
 def test_the_paper_preset_on_a_cpu_says_what_comes_next_before_it_starts(tmp_path, capsys):
-    from odmv.pace import CpuPace
+    from odmv.training.pace import CpuPace
 
     cfg = compose_config("train", ["model=odmvnet", "views=4", f"data.root={tmp_path / 'ds'}"])
     CpuPace(cfg)

@@ -65,7 +65,8 @@ class FPPDataModule(L.LightningDataModule):
     ``randomize``: the name of the domain-randomization profile the synthetic dataset was asked
     with (conf/randomize/); the profile itself reaches the simulator through ``simulate``.
     ``calibration``: beyond the paper, for ``head=phase``: every sample carries the rig's
-    triangulation maps (odmv.geometry), each view's projector coordinates and phase targets
+    triangulation maps (odmv.classical.geometry), each view's projector coordinates and phase
+    targets
     (needs a dataset with a rig). None: none of them.
     """
 

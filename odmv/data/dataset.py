@@ -16,11 +16,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from odmv.classical.geometry import triangulation_maps
 from odmv.data.normalize import Normalization
 from odmv.data.reference import network_input, reference_mode, reference_phase
 from odmv.data.subsets import MASKS, footprint_from_depth, subset_masks
 from odmv.data.views import with_availability
-from odmv.geometry import triangulation_maps
 from odmv.io.exr import ExrError, read_exr
 from odmv.io.images import NO_INTENSITY_BELOW
 from odmv.io.manifest import (
@@ -336,7 +336,7 @@ class FringeDataset(torch.utils.data.Dataset):
         first_shadowed (1,H,W, 0/1, see odmv.data.subsets); scene_id and family; with stacks also
         fringe_stack (S,K,H,W) in [-1,1]; with stacks or calibration projector_coord (S,H,W) in
         projector px (NaN where unlit); with calibration the rig's triangulation maps
-        (S,6,H,W, odmv.geometry) as ``calibration``."""
+        (S,6,H,W, odmv.classical.geometry) as ``calibration``."""
         if self.cache is not None and not self.spec.with_stacks:
             raw = self.cache.get(i)
         else:

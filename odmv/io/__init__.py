@@ -1,4 +1,5 @@
-"""File formats shared by the simulator and the data module: EXR images and the manifest."""
+"""File formats and files: EXR images, the dataset manifest, camera images, calibration files,
+point clouds, the run folder's names, and writing whole or not at all (atomic, guard)."""
 
 from odmv.io.exr import ExrError, exr_channels, read_channel, read_exr, write_exr
 from odmv.io.manifest import Manifest, ManifestError, load_manifest

@@ -11,8 +11,8 @@ import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from odmv.calibration import CalibratedRig, CalibrationError, parse_calibration
 from odmv.io.atomic import write_json
+from odmv.io.calibration import CalibratedRig, CalibrationError, parse_calibration
 from odmv.rig import VIEW_NAMES, Rig
 
 FORMAT = "odmv-fpp-dataset"

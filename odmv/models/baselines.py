@@ -112,7 +112,7 @@ def _with_phase(out: dict, phase: PhaseHead2d | None, features: torch.Tensor) ->
 
 
 class UNet(nn.Module):
-    LOSS_TERMS = ()  # odmv.losses.OPTIONAL_TERMS its outputs have
+    LOSS_TERMS = ()  # odmv.training.losses.OPTIONAL_TERMS its outputs have
 
     def __init__(
         self,

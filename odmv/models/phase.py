@@ -3,7 +3,8 @@
 A depth head regresses depth from the fringes and may learn the objects' shapes instead of
 reading the phase. The phase head makes every view's fringe the thing the net must read: per
 view, it predicts the input image's wrapped phase as (sin, cos) and a confidence. :func:`fuse`
-then turns each view's phase into depth through the rig's calibration (odmv.geometry; the maps
+then turns each view's phase into depth through the rig's calibration
+(odmv.classical.geometry; the maps
 travel with the batch) and blends the views' depths and the net's own regressed depth (the
 fallback where no projector lights a pixel) by a softmax of their confidences.
 
@@ -25,7 +26,7 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
-from odmv.geometry import (
+from odmv.classical.geometry import (
     depth_from_offset,
     fraction_from_phase,
     offset_from_depth,

@@ -4,7 +4,7 @@ dataset's test split, with networks' runs beside it at one image.
 
     python -m odmv.study captures DATASET --out DIR [--work DIR] ['LABEL=GLOB' ...]
 
-DATASET must hold the full sequences (images=full). Each capture of odmv.classical.CAPTURES is
+DATASET must hold the full sequences (images=full). Each capture of odmv.classical.row.CAPTURES is
 scored like a trained run in ``--work`` (default outputs/captures/<dataset>; kept once scored)
 and its record (``metrics.json``, ``test_scenes.csv``) copied to ``DIR/runs/<capture>/``; each
 ``LABEL=GLOB`` adds the run folders it matches as one point at one image per projector, the
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from odmv.classical import CAPTURES, classical_row
+from odmv.classical.row import CAPTURES, classical_row
 from odmv.data.dataset import DataError
 from odmv.io.atomic import write_atomic, write_csv, write_text
 from odmv.io.runfolder import METRICS, PREDICTIONS, SCENES_CSV

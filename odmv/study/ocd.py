@@ -19,10 +19,10 @@ import argparse
 import numpy as np
 import torch
 
-from odmv.checkpoint import CheckpointError
-from odmv.losses import resize_target
 from odmv.models.blocks import OcclusionAwareFusion
 from odmv.study.records import checkpoint_data
+from odmv.training.checkpoint import CheckpointError
+from odmv.training.losses import resize_target
 
 HEADS = ("Main", "Aux1", "Aux2")
 

@@ -22,10 +22,10 @@ import argparse
 import numpy as np
 import torch
 
-from odmv.checkpoint import CheckpointError
-from odmv.geometry import offset_from_coord, offset_from_depth
+from odmv.classical.geometry import offset_from_coord, offset_from_depth
 from odmv.study.ocd import auc
 from odmv.study.records import checkpoint_data
+from odmv.training.checkpoint import CheckpointError
 
 
 def phase_scores(module, loader) -> dict:

@@ -10,10 +10,10 @@ from pathlib import Path
 import hydra
 import numpy as np
 
-from odmv.checkpoint import best_checkpoint
 from odmv.config import CONF_DIR  # noqa: F401  (registers the config resolvers)
 from odmv.io.runfolder import HELDOUT, METRICS, PREDICTIONS, ROBUSTNESS, SCENES_CSV
-from odmv.module import load_module
+from odmv.training.checkpoint import best_checkpoint
+from odmv.training.module import load_module
 
 __all__ = ["HELDOUT", "METRICS", "PREDICTIONS", "ROBUSTNESS", "SCENES_CSV"]
 

@@ -25,9 +25,9 @@ import torch
 
 from odmv.io.atomic import write_json
 from odmv.io.runfolder import METRICS, PREDICTIONS, SCENES_CSV
-from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_results
-from odmv.module import subset_masks, write_scene_rows
 from odmv.study.records import run_data
+from odmv.training.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_results
+from odmv.training.module import subset_masks, write_scene_rows
 
 
 def rescore(run: Path) -> list[str]:

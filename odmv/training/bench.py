@@ -13,8 +13,8 @@ from omegaconf import DictConfig, OmegaConf
 from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.data.normalize import Normalization
 from odmv.data.reference import view_channels
-from odmv.module import FPPModule
 from odmv.rig import Rig, size_hw
+from odmv.training.module import FPPModule
 
 PRESETS = ("paper", "paper_plus", "mini", "quickstart")
 

@@ -1,5 +1,5 @@
 """The classical reference as a model row: phase shifting on every projector, triangulation,
-fusion over the projectors that lit each pixel (odmv.fpp), scored like a network.
+fusion over the projectors that lit each pixel (odmv.classical.fringe), scored like a network.
 
 ``classical_row(root, out_dir)`` reads the full sequences of the test scenes, writes the same
 files a trained run's test writes (``metrics.json``, ``test_scenes.csv``,
@@ -21,9 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from odmv.data.dataset import DataError, check_spec, load_scene, split_scenes
-from odmv.data.subsets import MASKS
-from odmv.fpp import (
+from odmv.classical.fringe import (
     anchor_to_plane,
     decode_phase,
     demodulate,
@@ -33,14 +31,16 @@ from odmv.fpp import (
     unwrap_spatial,
     wrapped_phase,
 )
-from odmv.geometry import triangulation_maps
+from odmv.classical.geometry import triangulation_maps
+from odmv.classical.sequences import PspOptions
+from odmv.data.dataset import DataError, check_spec, load_scene, split_scenes
+from odmv.data.subsets import MASKS
 from odmv.io.atomic import write_json
 from odmv.io.manifest import load_manifest
 from odmv.io.runfolder import METRICS
-from odmv.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_suffix
-from odmv.module import subset_masks, write_test_outputs
-from odmv.provenance import provenance
-from odmv.sequences import PspOptions
+from odmv.training.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_suffix
+from odmv.training.module import subset_masks, write_test_outputs
+from odmv.training.provenance import provenance
 
 #: Settings of the classical pipeline (documented in docs/reproduce.md).
 MIN_PERIOD_CAMERA_PX = 3.0  # finer sequences alias in the camera and are left out
@@ -136,8 +136,8 @@ class Capture:
     divisor of the dataset's steps, evenly spaced from the network's step) of the network's
     fringe, and with ``frequencies`` 2 as many of the one-period fringe too. One frequency is
     unwrapped spatially and its fringe order anchored to the reference plane
-    (:func:`odmv.fpp.anchor_to_plane`); one step of it is single-shot Fourier-transform
-    profilometry (:func:`odmv.fpp.demodulate`) of exactly the image a network sees."""
+    (:func:`odmv.classical.fringe.anchor_to_plane`); one step of it is single-shot Fourier-transform
+    profilometry (:func:`odmv.classical.fringe.demodulate`) of exactly the image a network sees."""
 
     steps: int
     frequencies: int = 1
@@ -215,8 +215,8 @@ def single_shot_depth(
     """Depth (mm, NaN where rejected) from one fringe image per projector (V, H, W; linear
     intensity) of period ``period_px`` (projector px) at phase step ``step`` of ``n_steps``:
     Fourier-transform profilometry against the reference plane's carrier
-    (:func:`odmv.fpp.demodulate`), spatially unwrapped, the fringe order anchored to the plane,
-    triangulated and fused as :data:`CAPTURES`' first row is."""
+    (:func:`odmv.classical.fringe.demodulate`), spatially unwrapped, the fringe order anchored
+    to the plane, triangulated and fused as :data:`CAPTURES`' first row is."""
     capture = CAPTURES[0]
     h, w = images.shape[-2:]
     camera = rig.camera_at(w, h)

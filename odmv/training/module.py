@@ -21,21 +21,21 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from lightning.pytorch.plugins.precision import MixedPrecision
 from lightning.pytorch.utilities import rank_zero_only
 
-from odmv.checkpoint import CheckpointError, check_weights, read_checkpoint
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import MASKS
 from odmv.io.atomic import write_csv, write_npz
 from odmv.io.runfolder import PREDICTIONS, SCENES_CSV
-from odmv.losses import LossWeights, composite_loss
-from odmv.metrics import (
+from odmv.models.blocks import split_availability
+from odmv.models.phase import fuse, has_phase_head
+from odmv.training.checkpoint import CheckpointError, check_weights, read_checkpoint
+from odmv.training.losses import LossWeights, composite_loss
+from odmv.training.metrics import (
     SUBSETS,
     DepthErrors,
     height_bands,
     per_image_subset_errors,
     subset_results,
 )
-from odmv.models.blocks import split_availability
-from odmv.models.phase import fuse, has_phase_head
 
 
 class NonFiniteLossError(ValueError):
@@ -144,7 +144,8 @@ class FPPModule(L.LightningModule):
     def forward(self, inputs: torch.Tensor, calibration: torch.Tensor | None = None) -> dict:
         """``inputs``: the net's input, i.e. a batch's ``inputs`` (fringes plus the reference
         phase) when the data has them, else its normalized ``fringes``. ``calibration``: the
-        batch's triangulation maps (B x S x 6 x H x W, odmv.geometry), which a net with the
+        batch's triangulation maps (B x S x 6 x H x W, odmv.classical.geometry), which a net
+        with the
         phase head needs to turn its views' phase into the fused ``depth``."""
         net = self.net if self._compiled is None else self._compiled
         out = net(inputs)
@@ -365,7 +366,7 @@ def batched(sample: dict) -> dict:
 
 def subset_masks(batch: dict) -> dict[str, torch.Tensor]:
     """Metric pixel masks (B x 1 x H x W) from the batch's ground truth: odmv.data.subsets and
-    the height bands of odmv.metrics."""
+    the height bands of odmv.training.metrics."""
     valid = batch["valid"]
     masks = {"all": valid} | {k: batch[k] * valid for k in MASKS}
     return masks | height_bands(batch["depth_mm"])

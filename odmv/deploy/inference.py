@@ -1,7 +1,8 @@
 """A trained net as a depth function: a checkpoint (run by PyTorch) or an exported ONNX model
 (run by ONNX Runtime) with the views, input size, normalization and input settings it was
 trained with. Used by ``odmv.predict`` and by anything that runs a net on images. A net with
-the phase head (``head=phase``) also takes the rig's triangulation maps (odmv.geometry), built
+the phase head (``head=phase``) also takes the rig's triangulation maps
+(odmv.classical.geometry), built
 from the same calibration as the reference phase, and gives each view's fusion weight."""
 
 from __future__ import annotations
@@ -14,13 +15,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from odmv.classical.geometry import triangulation_maps
 from odmv.data.normalize import Normalization
 from odmv.data.reference import network_input, reference_mode, reference_phase
 from odmv.data.views import with_availability
-from odmv.export import METADATA_KEY, input_shape
-from odmv.geometry import triangulation_maps
-from odmv.module import load_module
+from odmv.deploy.onnx import METADATA_KEY, input_shape
 from odmv.rig import Rig
+from odmv.training.module import load_module
 
 
 @dataclass

@@ -3,7 +3,8 @@ frequencies, and the check that they were read right.
 
 Real sequences differ from the twin's in how files are numbered, in the direction of the phase
 shift and in the phase of the first image. :class:`PspOptions` names all of it (``psp.*`` of
-``odmv.predict`` and ``odmv.convert``, docs/dataset.md); the decoding is odmv.fpp's. Read with
+``odmv.predict`` and ``odmv.convert``, docs/dataset.md); the decoding is
+odmv.classical.fringe's. Read with
 the wrong conventions, consecutive frequencies give fringe orders that disagree on most pixels:
 :func:`check_conventions` says so in one line, with the conventions under which they agree.
 """
@@ -15,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from odmv.classical.fringe import decode_phase
 from odmv.data.dataset import DataError
-from odmv.fpp import decode_phase
 from odmv.io.images import find_view_image
 
 #: The twin's sequences: 1, 8 and 64 periods across the projector's 1920 px (odmv.io.manifest).
@@ -109,7 +110,7 @@ class PspOptions:
         return self.pattern.format(view=view, f=f + i, s=s + i, n=f * steps + s + i)
 
     def conventions(self) -> dict:
-        """The keyword arguments of odmv.fpp.decode_phase these options set."""
+        """The keyword arguments of odmv.classical.fringe.decode_phase these options set."""
         return dict(
             shift_sign=self.shift_sign, phase_origin_rad=self.phase_origin_rad, unwrap=self.unwrap
         )

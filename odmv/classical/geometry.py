@@ -8,7 +8,8 @@ sees ``u_ref``; a surface above or below the plane moves it by the offset ``delt
     depth = d_ref + delta * g / (1 - delta * h),
 
 with ``d_ref`` the reference plane's depth at the pixel and ``g`` (mm / px), ``h`` (1 / px) from
-the calibration: exactly the plane-ray intersection of :func:`odmv.fpp.triangulate_depth`,
+the calibration: exactly the plane-ray intersection of
+:func:`odmv.classical.fringe.triangulate_depth`,
 rewritten around the plane so that float32 keeps it to 1e-5 mm (``u`` itself is ~1e3 px, and the
 intersection's terms cancel). The maps are computed once per rig, view, image size and fringe
 (float64, then float32) and travel with every sample, so a net with a phase head turns phase

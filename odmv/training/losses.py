@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 from kornia.metrics import ssim
 
-from odmv.geometry import offset_from_coord
+from odmv.classical.geometry import offset_from_coord
 from odmv.models.phase import lowest_order
 
 # the weights of the terms beyond the main depth loss, and the net output each term needs: a
