@@ -48,6 +48,7 @@ from odmv.study.robustness import SHIFTS, score_run
 from odmv.study.summarize import summary_lines
 from odmv.study.tables import own_width
 from odmv.training.losses import OPTIONAL_TERMS, PHASE_TERMS
+from odmv.training.module import OPTIMIZER, SCHEDULER
 
 CLASSICAL_DIR = "classical"
 STUDY = "study.md"  # the table of a study's own rows
@@ -163,6 +164,15 @@ def _run_key(cfg: DictConfig) -> str:
     callbacks = d.get("callbacks") or {}
     for name in [n for n, c in callbacks.items() if c.get("_target_") in RECORDERS]:
         callbacks.pop(name)  # where checkpoints go and how the rate is logged shape no weight
+    # the paper's optimizer and schedule, named since they became configs: rows trained
+    # before keep their keys
+    for group, default in (("optimizer", OPTIMIZER), ("scheduler", SCHEDULER)):
+        named = d.get(group) or {}
+        if named.get("_target_") == default:
+            named.pop("_target_")
+            named.pop("_partial_", None)
+            if named.get("interval") == "epoch":
+                named.pop("interval")
     for setting in QUIET:  # how a run reports is not what it is
         group, _, key = setting.partition("=")[0].rpartition(".")
         d[group].pop(key, None)

@@ -5,6 +5,7 @@ a resumed reproduction that trains nothing."""
 import csv
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -278,6 +279,20 @@ def test_how_checkpoints_are_kept_is_no_part_of_a_rows_key(tmp_path):
     saved.callbacks.checkpoint.save_last = True
     assert _run_key(saved) == job.key
     assert plan("mini", ["views"], [0], ["ema=0.99"], tmp_path)[0].key != job.key
+
+
+def test_the_committed_mini_rows_are_current_under_todays_configs():
+    """Every row of the mini reproduction's records is what today's configs would train (so
+    a refactor of the configs, e.g. the optimizer as a config group, retrains nothing); a
+    change that should retrain rows makes this fail and says which."""
+    records = sorted((Path(__file__).parents[1] / "experiments/results/mini/runs").glob("*"))
+    stale = []
+    for folder in records:
+        if (folder / "reproduce.json").is_file():
+            overrides = json.loads((folder / "reproduce.json").read_text())["overrides"]
+            if trained_key(folder) != _run_key(compose_train(overrides)):
+                stale.append(folder.name)
+    assert len(records) > 20 and not stale, stale
 
 
 def test_a_record_without_its_config_is_judged_by_its_recorded_key(tmp_path):

@@ -109,6 +109,18 @@ def test_resume_continues_from_the_saved_epoch(trained, tiny_dataset, tmp_path):
     assert after["lr_schedulers"][0]["last_epoch"] == before["lr_schedulers"][0]["last_epoch"] + 1
 
 
+def test_the_optimizer_and_schedule_come_from_config(tiny_dataset, tmp_path):
+    """optimizer=adamw scheduler=onecycle: AdamW's decoupled decay and OneCycle's state are
+    what the checkpoint holds, with no code touched."""
+    extra = ("optimizer=adamw", "scheduler=onecycle", "trainer.max_epochs=2", "test=false")
+    train(compose_config("train", tiny_overrides(tiny_dataset, tmp_path, *extra)))
+    ckpt = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)
+    group = ckpt["optimizer_states"][0]["param_groups"][0]
+    assert group["decoupled_weight_decay"] and group["weight_decay"] == 0.01
+    sched = ckpt["lr_schedulers"][0]
+    assert sched["total_steps"] == 2 and sched["last_epoch"] == 2  # stepped once an epoch
+
+
 def test_init_from_starts_a_fine_tune_from_a_runs_best_weights(trained, tiny_dataset, tmp_path):
     """init_from=RUN: a new run whose first step starts from the run's best weights, with its
     own settings (view dropout), epochs and optimizer; weights of another net are refused in

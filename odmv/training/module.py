@@ -37,6 +37,10 @@ from odmv.training.metrics import (
     subset_results,
 )
 
+#: the paper's optimizer and schedule (conf/optimizer/adam.yaml, conf/scheduler/cosine_restarts)
+OPTIMIZER = "torch.optim.Adam"
+SCHEDULER = "torch.optim.lr_scheduler.CosineAnnealingWarmRestarts"
+
 
 class NonFiniteLossError(ValueError):
     """The training loss became NaN or infinite; training stops."""
@@ -252,11 +256,13 @@ class FPPModule(L.LightningModule):
 
     # ---------------------------------------------------------------- optimisation
     def configure_optimizers(self):
-        opt_cfg = dict(self.hparams.optimizer or {"lr": 1e-4})
-        opt = torch.optim.Adam(self.parameters(), **opt_cfg)
-        sch_cfg = dict(self.hparams.scheduler or {"T_0": 10})
-        sched = torch.optim.lr_scheduler.CosineAnnealingWarmRestarts(opt, **sch_cfg)
-        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
+        # a checkpoint from before optimizers were configs names no _target_: Adam and cosine
+        opt_cfg = {"_target_": OPTIMIZER, **(self.hparams.optimizer or {"lr": 1e-4})}
+        opt = hydra.utils.instantiate(opt_cfg | {"_partial_": True})(self.parameters())
+        sch_cfg = {"_target_": SCHEDULER, **(self.hparams.scheduler or {"T_0": 10})}
+        interval = sch_cfg.pop("interval", "epoch")
+        sched = hydra.utils.instantiate(sch_cfg | {"_partial_": True})(opt)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": interval}}
 
     def configure_gradient_clipping(
         self, optimizer, gradient_clip_val=None, gradient_clip_algorithm=None
