@@ -19,6 +19,7 @@ from omegaconf import DictConfig
 
 from odmv.cli import app, run_app
 from odmv.io.atomic import write_csv, write_text
+from odmv.io.runfolder import portable
 from odmv.study.captures import report_section
 from odmv.study.claims import claims_markdown
 from odmv.study.figures import FIGURE_SCENES, bar_chart, comparison_figures
@@ -149,14 +150,6 @@ def table_csv(path: Path, cells: list[Cell]) -> None:
 
 
 # ----------------------------------------------------------------------------- header
-def _relative(path: Path) -> str:
-    """A path relative to the working directory where it lies below it (portable reports)."""
-    try:
-        return str(path.resolve().relative_to(Path.cwd().resolve()))
-    except ValueError:
-        return str(path)
-
-
 def _recorded(runs: list[Run], key: str) -> str:
     """The distinct values of a provenance field over the runs' records, most runs first
     (`unknown` for records that predate it)."""
@@ -283,18 +276,20 @@ def write_report(
         lines.append("")
     if pending:
         lines += ["### Unfinished runs (not counted)", ""]
-        lines += [f"- `{_relative(p)}`" for p in pending]
+        lines += [f"- `{portable(p)}`" for p in pending]
         lines.append("")
     lines += ["### Every run", "", "See `runs.csv` (one line per run and seed)."]
     write_csv(
         out / "runs.csv",
         [
             {
-                "folder": _relative(r.folder),
+                "folder": portable(r.folder),
                 **{k: v for k, v in r.metrics.items() if not isinstance(v, (list, dict))},
                 "views": "+".join(r.metrics.get("views") or []),
                 **{
-                    k: _relative(Path(r.metrics[k]))
+                    k: portable(
+                        r.folder / r.metrics[k] if k == "best_checkpoint" else Path(r.metrics[k])
+                    )
                     for k in ("best_checkpoint", "dataset")
                     if r.metrics.get(k)
                 },

@@ -32,7 +32,7 @@ from odmv.cli import (
     tool,
 )
 from odmv.io.atomic import write_json, write_text
-from odmv.io.runfolder import CONFIG, METRICS
+from odmv.io.runfolder import CONFIG, METRICS, portable_record
 from odmv.training.checkpoint import (
     AtomicCheckpointIO,
     check_fits,
@@ -241,10 +241,11 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
             **provenance(dm.root),
         )
         if trainer.is_global_zero:
-            write_json(out_dir / METRICS, metrics)
+            record = portable_record(metrics, out_dir)
+            write_json(out_dir / METRICS, record)
             append_row(
                 out_dir / "metrics.csv",
-                {k: v for k, v in metrics.items() if not isinstance(v, list)},
+                {k: v for k, v in record.items() if not isinstance(v, list)},
             )
     return metrics
 

@@ -2,6 +2,7 @@
 
 import csv
 import hashlib
+import json
 import os
 import shutil
 import subprocess
@@ -107,6 +108,31 @@ def test_resume_continues_from_the_saved_epoch(trained, tiny_dataset, tmp_path):
     after = torch.load(last, weights_only=True)
     assert after["epoch"] == 1 and after["global_step"] == 4  # one more epoch, not two
     assert after["lr_schedulers"][0]["last_epoch"] == before["lr_schedulers"][0]["last_epoch"] + 1
+
+
+def test_a_runs_record_names_its_files_so_another_machine_finds_them(
+    trained, tmp_path, monkeypatch
+):
+    """metrics.json names the best checkpoint relative to the run folder (the folder can move)
+    and the dataset relative to the checkout; a record with another machine's absolute path
+    finds the dataset of that name in this checkout's data/."""
+    from odmv.io.runfolder import portable, recorded_dataset
+    from odmv.training.checkpoint import best_checkpoint
+
+    run, metrics = trained
+    record = json.loads((run / "metrics.json").read_text())
+    assert record["best_checkpoint"].startswith("checkpoints/best-")
+    moved = shutil.copytree(run, tmp_path / "moved")
+    ckpt, _ = best_checkpoint(moved)
+    assert ckpt == moved / record["best_checkpoint"] and ckpt.is_file()
+    dataset = Path(metrics["dataset"])
+    monkeypatch.chdir(dataset.parent)
+    assert portable(dataset) == dataset.name and recorded_dataset({"dataset": dataset.name})
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / dataset.name).symlink_to(dataset)
+    found = recorded_dataset({"dataset": f"/another/machine/data/{dataset.name}"})
+    assert found == Path("data") / dataset.name and (found / "manifest.json").is_file()
 
 
 def test_the_optimizer_and_schedule_come_from_config(tiny_dataset, tmp_path):

@@ -37,7 +37,7 @@ from odmv.data.dataset import DataError, check_spec, load_scene, split_scenes
 from odmv.data.subsets import MASKS
 from odmv.io.atomic import write_json
 from odmv.io.manifest import load_manifest
-from odmv.io.runfolder import METRICS
+from odmv.io.runfolder import METRICS, portable_record
 from odmv.training.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_suffix
 from odmv.training.module import subset_masks, write_test_outputs
 from odmv.training.provenance import provenance
@@ -340,5 +340,5 @@ def classical_row(
     )
     out_dir = Path(out_dir)
     write_test_outputs(out_dir, rows, preds)
-    write_json(out_dir / METRICS, out)
+    write_json(out_dir / METRICS, portable_record(out, out_dir))
     return out

@@ -6,9 +6,49 @@ the held-out set), ``robustness.json`` (its scores on shifted twins of its datas
 and true depth in mm), ``.hydra/config.yaml`` and ``checkpoints/``. How runs are found and read:
 :mod:`odmv.study.records`."""
 
+from pathlib import Path
+
 METRICS = "metrics.json"
 HELDOUT = "heldout.json"
 SCENES_CSV = "test_scenes.csv"
 PREDICTIONS = "test_predictions.npz"
 CONFIG = ".hydra/config.yaml"
 ROBUSTNESS = "robustness.json"
+
+#: where a checkout keeps its datasets (conf/paths/default.yaml's data_dir)
+DATA_DIR = "data"
+
+
+def portable(path: str | Path) -> str:
+    """``path`` as a record stores it: relative to the working directory (the checkout a run
+    or study starts in) where it lies below it, else absolute."""
+    try:
+        return str(Path(path).resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(Path(path).absolute())
+
+
+def portable_record(metrics: dict, run: Path) -> dict:
+    """A run's metrics as its ``metrics.json`` stores them: the best checkpoint relative to the
+    run folder (it moves with it), the dataset :func:`portable`."""
+    out = dict(metrics)
+    if out.get("best_checkpoint"):
+        ckpt = Path(out["best_checkpoint"])
+        try:
+            out["best_checkpoint"] = str(ckpt.resolve().relative_to(Path(run).resolve()))
+        except ValueError:
+            out["best_checkpoint"] = str(ckpt.absolute())
+    if out.get("dataset"):
+        out["dataset"] = portable(out["dataset"])
+    return out
+
+
+def recorded_dataset(metrics: dict) -> Path:
+    """The dataset a record names: where it says (a relative path: below the working
+    directory), else, for a record written on another machine, the folder of that name in
+    this checkout's ``data/``; the recorded path if neither is there (its reader says so)."""
+    path = Path(metrics["dataset"])
+    if path.is_dir():
+        return path
+    here = Path(DATA_DIR) / path.name
+    return here if here.is_dir() else path

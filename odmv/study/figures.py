@@ -10,7 +10,7 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
-from odmv.io.runfolder import PREDICTIONS, SCENES_CSV
+from odmv.io.runfolder import PREDICTIONS, SCENES_CSV, recorded_dataset
 from odmv.study.results import Cell, Run
 from odmv.study.tables import TITLES
 
@@ -106,7 +106,10 @@ def comparison_figures(
         gt = preds[0][1][sid][1]
         lo, hi = float(np.nanmin(gt)), float(np.nanmax(gt))
         n = len(preds)
-        inputs = _fringes(ref_run.metrics.get("dataset", ""), sid, gt.shape)
+        recorded = ref_run.metrics.get("dataset")
+        inputs = (
+            _fringes(str(recorded_dataset(ref_run.metrics)), sid, gt.shape) if recorded else None
+        )
         cols = max(n, 5)
         fig, axes = plt.subplots(3, cols, figsize=(2.6 * cols, 8), squeeze=False)
         for ax in axes.flat:

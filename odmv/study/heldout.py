@@ -25,6 +25,7 @@ from pathlib import Path
 from odmv.config import settings_hash
 from odmv.io.atomic import write_json
 from odmv.io.manifest import MANIFEST
+from odmv.io.runfolder import portable, recorded_dataset
 from odmv.sim.shifts import Shift
 from odmv.sim.writer import SimSettings, simulate
 from odmv.study.records import HELDOUT, METRICS, best_checkpoint
@@ -134,7 +135,7 @@ def evaluate_on(
         raise HeldoutError(f"{run}: {what} scoring failed (exit {proc.returncode}): {last[0]}")
     metrics = json.loads((scratch / METRICS).read_text())
     shutil.rmtree(scratch, ignore_errors=True)
-    return metrics | {"dataset": str(data.resolve())}
+    return metrics | {"dataset": portable(data)}
 
 
 def score_heldout(run: Path, threads: int | None = None, scenes: int = SCENES) -> dict:
@@ -142,7 +143,7 @@ def score_heldout(run: Path, threads: int | None = None, scenes: int = SCENES) -
     (rendered on first use) and write the metrics to ``run/heldout.json``; returns them.
     ``threads``: torch's intra-op thread count for the evaluation (None: torch's default)."""
     _, metrics = best_checkpoint(run)
-    held = evaluate_on(run, heldout_dataset(Path(metrics["dataset"]), scenes), threads, "heldout")
+    held = evaluate_on(run, heldout_dataset(recorded_dataset(metrics), scenes), threads, "heldout")
     write_json(run / HELDOUT, held)
     return held
 

@@ -36,6 +36,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from odmv.io.atomic import write_atomic, write_csv, write_json, write_text
+from odmv.io.runfolder import recorded_dataset
 from odmv.rig import VIEW_NAMES
 from odmv.sim.shifts import NOMINAL_SHIFT, Shift, parse_shift
 from odmv.study.heldout import evaluate_on, source_seed, twin_dataset, twin_settings
@@ -103,7 +104,7 @@ def score_run(
     path = run / ROBUSTNESS
     scores = json.loads(path.read_text()) if path.is_file() else {}
     record = json.loads((run / METRICS).read_text())
-    source = Path(record["dataset"])
+    source = recorded_dataset(record)
     sets = [(shift.label(), shift, ()) for shift in [NOMINAL_SHIFT, *shifts]]
     if _setting(run, "view_dropout"):
         sets += [
@@ -181,7 +182,7 @@ def score_classical(
 
 
 def _dataset(run: Path) -> Path:
-    return Path(json.loads((run / METRICS).read_text())["dataset"])
+    return recorded_dataset(json.loads((run / METRICS).read_text()))
 
 
 def _label(run: Path, metrics: dict) -> str:

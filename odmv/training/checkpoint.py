@@ -61,13 +61,14 @@ def _setting_differences(saved: dict, current: dict) -> list[str]:
 
 
 def best_checkpoint(run: Path) -> tuple[Path, dict]:
-    """A finished run's best checkpoint (found beside it where the run folder was moved) and
-    its metrics.json."""
+    """A finished run's best checkpoint (recorded relative to the run folder; an older record's
+    absolute path is looked for beside the run where the folder was moved) and its
+    metrics.json."""
     path = run / METRICS
     if not path.is_file():
         raise CheckpointError(f"{run}: no {METRICS} (not a finished run)")
     metrics = json.loads(path.read_text())
-    ckpt = Path(metrics["best_checkpoint"])
+    ckpt = run / metrics["best_checkpoint"]  # relative to the run folder, or absolute (older)
     if not ckpt.is_file():
         ckpt = run / "checkpoints" / ckpt.name  # the run folder was moved
     return ckpt, metrics
