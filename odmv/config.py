@@ -10,6 +10,7 @@ from pathlib import Path
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from odmv.data.reference import view_channels as reference_channels
+from odmv.models.odmvnet import TABLE_I
 from odmv.rig import VIEW_SETS, check_views
 
 #: the Hydra config tree every app composes from: conf/ of the checkout this module is in (as
@@ -164,8 +165,24 @@ def csv_list(values) -> str:
     return ",".join(str(v) for v in values)
 
 
+def table_i_rows() -> str:
+    """Table I's row keys as a Hydra sweep value (conf/sweep/ablation.yaml)."""
+    return ",".join(row.key for row in TABLE_I)
+
+
+def _register_table_i() -> None:
+    """``ablation=KEY`` for each Table I row: a config group built from the one table (no file
+    per row), so a wrong key gets Hydra's list of the options."""
+    from hydra.core.config_store import ConfigStore
+
+    store = ConfigStore.instance()
+    for row in TABLE_I:
+        store.store(group="ablation", name=row.key, node={"ablation": row.key}, package="_global_")
+
+
 for _name, _fn in (
     ("odmv.csv", csv_list),
+    ("odmv.table_i", table_i_rows),
     ("odmv.first", first_set),
     ("odmv.on_gpu", on_gpu),
     ("odmv.cpu_precision", cpu_precision),
@@ -182,3 +199,4 @@ for _name, _fn in (
 ):
     if not OmegaConf.has_resolver(_name):
         OmegaConf.register_new_resolver(_name, _fn)
+_register_table_i()

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from omegaconf import DictConfig
 
 from odmv.config import compose_train, contenders
+from odmv.models.odmvnet import TABLE_I
 
 
 @dataclass(frozen=True)
@@ -26,16 +27,9 @@ class Row:
     capture: str | None = None  # a classical row on fewer images (odmv.classical.row.Capture.key)
 
 
-#: Table I's cumulative module rows (conf/ablation/, odmv.models.ABLATION_ROWS): key, label and
-#: the paper's MAE, MSE, RMSE
-ABLATION = (
-    ("baseline", "Baseline (vanilla 3D U-Net)", (0.0926, 0.1337, 0.3442)),
-    ("rb_ag", "+RB&AG", (0.0463, 0.0440, 0.1840)),
-    ("aspp", "+ASPP", (0.0451, 0.0432, 0.1778)),
-    ("rve", "+RVE", (0.0461, 0.0427, 0.1776)),
-    ("ocd_oaf", "+OCD&OAF", (0.0452, 0.0411, 0.1747)),
-    ("multitask", "+Multi-task (ODMV-Net)", (0.0447, 0.0403, 0.1741)),
-)
+#: Table I's cumulative module rows (odmv.models.odmvnet.TABLE_I): key, label and the paper's
+#: MAE, MSE, RMSE
+ABLATION = tuple((row.key, row.label, row.paper) for row in TABLE_I)
 PAPER_ODMV = ABLATION[-1][2]  # the full ODMV-Net at S = 4
 VIEWS = ("S=1 (right)", "S=2 (right, up)", "S=3 (right, left, up)", "S=4 (all)")
 #: the classical reference (odmv.classical.row) and its place among Table II's registry rows
