@@ -12,6 +12,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from odmv.data.reference import view_channels as reference_channels
 from odmv.models.odmvnet import TABLE_I
 from odmv.rig import VIEW_SETS, check_views
+from odmv.sim.shifts import KINDS
 
 #: the Hydra config tree every app composes from: conf/ of the checkout this module is in (as
 #: odmv/conf links to it), or the copy an installed wheel carries there. A path of this very
@@ -170,14 +171,19 @@ def table_i_rows() -> str:
     return ",".join(row.key for row in TABLE_I)
 
 
-def _register_table_i() -> None:
-    """``ablation=KEY`` for each Table I row: a config group built from the one table (no file
-    per row), so a wrong key gets Hydra's list of the options."""
+def _register_options() -> None:
+    """``ablation=KEY`` for each Table I row and ``shift=NAME`` for each shift: config groups
+    built from their one table each (odmv.models.odmvnet.TABLE_I, odmv.sim.shifts.KINDS; no
+    file per option), so a wrong name gets Hydra's list of the options."""
     from hydra.core.config_store import ConfigStore
 
     store = ConfigStore.instance()
     for row in TABLE_I:
         store.store(group="ablation", name=row.key, node={"ablation": row.key}, package="_global_")
+    for name, kind in KINDS.items():
+        store.store(
+            group="shift", name=name, node={"name": name, "strength": kind.example, "seed": 0}
+        )
 
 
 for _name, _fn in (
@@ -199,4 +205,4 @@ for _name, _fn in (
 ):
     if not OmegaConf.has_resolver(_name):
         OmegaConf.register_new_resolver(_name, _fn)
-_register_table_i()
+_register_options()

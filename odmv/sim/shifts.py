@@ -6,18 +6,10 @@ rig drifted, says. The reference-phase input and the classical method therefore 
 rig, as they would on the shop floor. Each shift has one strength; at its nominal strength it
 renders the nominal images byte for byte.
 
-- ``projector_rotation``: each projector turned about its centre by X deg, each about its own
-  random axis (nominal 0);
-- ``projector_shift``: each projector's centre moved X mm in its own random direction (0);
-- ``camera_focal``: the camera's focal length +X % (0);
-- ``gamma``: projector gamma X, uncompensated: the pattern is (A + B cos)^X (1);
-- ``defocus``: Gaussian blur of the optical image, sigma X output px (0);
-- ``ambient``: ambient light +X of full scale (0);
-- ``noise``: photon and read noise X times their nominal std (1);
-- ``exposure``: every irradiance times X, saturating above full scale (1);
-- ``texture``: printed marks on the parts' albedo, contrast X: albedo times 1 - X on a mark (0);
-- ``gloss``: a specular lobe lit by each projector, X of its irradiance at the peak (0);
-- ``dead_view``: the projector named X gives no light, its images are ambient only (none).
+Every shift is one entry of :data:`KINDS`: its unit, nominal and example strengths, the two
+strengths the robustness study renders, what it changes and how (the rig, the optics and
+sensor, or the surfaces). ``shift=NAME`` (a config option registered from the table by
+odmv.config), the simulator and the robustness study read it.
 
 The random axes and directions are drawn from ``seed`` per projector, the same for every scene.
 """
@@ -25,31 +17,150 @@ The random axes and directions are drawn from ``seed`` per projector, the same f
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 
 from odmv.rig import VIEW_NAMES, Projector, Rig
 from odmv.sim.render import RenderConfig
 
-#: each shift's nominal strength (None for dead_view: no projector dead)
-NOMINAL: dict[str, float | str | None] = {
-    "none": None,
-    "projector_rotation": 0.0,
-    "projector_shift": 0.0,
-    "camera_focal": 0.0,
-    "gamma": 1.0,
-    "defocus": 0.0,
-    "ambient": 0.0,
-    "noise": 1.0,
-    "exposure": 1.0,
-    "texture": 0.0,
-    "gloss": 0.0,
-    "dead_view": None,
+
+class Kind(NamedTuple):
+    """One kind of shift. ``rig(rig, x, seed)`` or ``render(cfg, x)`` applies it at strength
+    ``x`` where it changes the rig or the optics and sensor; the surface shifts (texture,
+    gloss, dead_view) reach the renderer as :class:`Applied`'s fields."""
+
+    unit: str
+    nominal: float | str | None  # the strength that renders the nominal images
+    example: float | str | None  # shift=NAME's strength
+    study: tuple  # the strengths the robustness study renders (a drift and a larger one)
+    what: str
+    rig: Callable | None = None
+    render: Callable | None = None
+    signed: bool = False  # negative strengths allowed
+    positive: bool = False  # strength must be above 0
+
+
+def _zoom(rig: Rig, x: float, seed: int) -> Rig:  # a moved-projector rig keeps its moves
+    return replace(
+        rig, camera=replace(rig.camera, focal_length_mm=rig.camera.focal_mm * (1 + x / 100))
+    )
+
+
+def _moved(rig: Rig, seed: int) -> MovedProjectorsRig:
+    return (
+        rig
+        if isinstance(rig, MovedProjectorsRig)
+        else MovedProjectorsRig(rig.camera, rig.projector, seed=seed)
+    )
+
+
+#: every shift, in the order the robustness report lists them: the one place they are declared
+KINDS: dict[str, Kind] = {
+    "none": Kind(
+        unit="",
+        nominal=None,
+        example=None,
+        study=(),
+        what="the nominal twin: the images come from the rig the manifest describes",
+    ),
+    "projector_rotation": Kind(
+        unit="deg",
+        nominal=0.0,
+        example=0.5,
+        study=(0.02, 0.1),
+        what="each projector turned about its centre by X, about its own random axis (shift.seed)",
+        rig=lambda rig, x, seed: replace(_moved(rig, seed), rotation_deg=x, seed=seed),
+    ),
+    "projector_shift": Kind(
+        unit="mm",
+        nominal=0.0,
+        example=1.0,
+        study=(0.05, 0.2),
+        what="each projector's centre moved X in its own random direction (shift.seed)",
+        rig=lambda rig, x, seed: replace(_moved(rig, seed), shift_mm=x, seed=seed),
+    ),
+    "camera_focal": Kind(
+        unit="%",
+        nominal=0.0,
+        example=1.0,
+        study=(0.2, 1),
+        what="the camera's focal length +X (a zoom or refocus after calibration)",
+        rig=_zoom,
+        signed=True,
+    ),
+    "gamma": Kind(
+        unit="exponent",
+        nominal=1.0,
+        example=2.2,
+        study=(1.5, 2.2),
+        what="the projector's intensity curve: the pattern is (A + B cos phi)^X, uncompensated",
+        render=lambda cfg, x: replace(cfg, projector_gamma=x),
+        positive=True,
+    ),
+    "defocus": Kind(
+        unit="output px",
+        nominal=0.0,
+        example=1.0,
+        study=(0.7, 1.5),
+        what="Gaussian blur of the optical image, sigma X",
+        render=lambda cfg, x: replace(cfg, defocus_sigma_px=x),
+    ),
+    "ambient": Kind(
+        unit="of full scale",
+        nominal=0.0,
+        example=0.2,
+        study=(0.1, 0.3),
+        what="ambient light +X of the sensor's full scale",
+        render=lambda cfg, x: replace(cfg, ambient=cfg.ambient + x),
+    ),
+    "noise": Kind(
+        unit="x nominal std",
+        nominal=1.0,
+        example=4.0,
+        study=(2, 4),
+        what="photon and read noise X times their nominal std",
+        render=lambda cfg, x: replace(
+            cfg, read_noise=cfg.read_noise * x, full_well_e=cfg.full_well_e / x**2
+        ),
+    ),
+    "exposure": Kind(
+        unit="x irradiance",
+        nominal=1.0,
+        example=1.5,
+        study=(0.6, 1.5),
+        what="every irradiance times X; above the sensor's full scale the images saturate",
+        render=lambda cfg, x: replace(
+            cfg, ambient=cfg.ambient * x, projector_irradiance=cfg.projector_irradiance * x
+        ),
+        positive=True,
+    ),
+    "texture": Kind(
+        unit="contrast",
+        nominal=0.0,
+        example=0.5,
+        study=(0.3, 0.6),
+        what="printed marks (labels, silkscreen) on the parts: albedo times 1 - X on a mark",
+    ),
+    "gloss": Kind(
+        unit="of irradiance",
+        nominal=0.0,
+        example=1.0,
+        study=(0.5, 1.5),
+        what="a specular lobe of each projector on every surface, X of its irradiance at peak",
+    ),
+    "dead_view": Kind(
+        unit="view",
+        nominal=None,
+        example="down",
+        study=VIEW_NAMES,
+        what="the projector named X gives no light: its images are ambient only",
+    ),
 }
-
-
-GEOMETRIC = ("projector_rotation", "projector_shift", "camera_focal")  # they move the rig
+#: each shift's nominal strength (None for dead_view: no projector dead)
+NOMINAL: dict[str, float | str | None] = {name: k.nominal for name, k in KINDS.items()}
 
 
 class ShiftError(ValueError):
@@ -80,9 +191,10 @@ class Shift:
             raise ShiftError(
                 f"shift {self.name}: strength {self.strength!r} is not a number"
             ) from None
-        if not math.isfinite(value) or (value <= 0 and self.name in ("gamma", "exposure")):
+        kind = KINDS[self.name]
+        if not math.isfinite(value) or (value <= 0 and kind.positive):
             raise ShiftError(f"shift {self.name}: strength {value} is out of range")
-        if value < 0 and self.name != "camera_focal":
+        if value < 0 and not kind.signed:
             raise ShiftError(f"shift {self.name}: strength {value} must not be negative")
         object.__setattr__(self, "strength", value)
 
@@ -108,36 +220,13 @@ class Shift:
     # -------------------------------------------------------------------------- applied
     def rig(self, rig: Rig) -> Rig:
         """The rig that renders the images (the manifest keeps ``rig``)."""
-        x = self.value
-        if self.nominal or self.name not in GEOMETRIC:
-            return rig
-        if self.name == "camera_focal":  # (a moved-projector rig keeps its moves)
-            focal = rig.camera.focal_mm * (1 + x / 100)
-            return replace(rig, camera=replace(rig.camera, focal_length_mm=focal))
-        if not isinstance(rig, MovedProjectorsRig):
-            rig = MovedProjectorsRig(rig.camera, rig.projector, seed=self.seed)
-        if self.name == "projector_rotation":
-            return replace(rig, rotation_deg=x, seed=self.seed)
-        return replace(rig, shift_mm=x, seed=self.seed)
+        moves = KINDS[self.name].rig
+        return rig if self.nominal or moves is None else moves(rig, self.value, self.seed)
 
     def render(self, cfg: RenderConfig) -> RenderConfig:
         """The optics and sensor that render the images."""
-        x = self.value
-        if self.nominal:
-            return cfg
-        if self.name == "gamma":
-            return replace(cfg, projector_gamma=x)
-        if self.name == "defocus":
-            return replace(cfg, defocus_sigma_px=x)
-        if self.name == "ambient":
-            return replace(cfg, ambient=cfg.ambient + x)
-        if self.name == "noise":
-            return replace(cfg, read_noise=cfg.read_noise * x, full_well_e=cfg.full_well_e / x**2)
-        if self.name == "exposure":
-            return replace(
-                cfg, ambient=cfg.ambient * x, projector_irradiance=cfg.projector_irradiance * x
-            )
-        return cfg
+        changes = KINDS[self.name].render
+        return cfg if self.nominal or changes is None else changes(cfg, self.value)
 
     @property
     def texture_contrast(self) -> float:

@@ -38,7 +38,7 @@ from omegaconf import OmegaConf
 from odmv.io.atomic import write_atomic, write_csv, write_json, write_text
 from odmv.io.runfolder import recorded_dataset
 from odmv.rig import VIEW_NAMES
-from odmv.sim.shifts import NOMINAL_SHIFT, Shift, parse_shift
+from odmv.sim.shifts import KINDS, NOMINAL_SHIFT, Shift, parse_shift
 from odmv.study.heldout import evaluate_on, source_seed, twin_dataset, twin_settings
 from odmv.study.records import METRICS, ROBUSTNESS
 
@@ -47,32 +47,12 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 SCENES = 100
 SEED_OFFSET = 2  # after the training data (+0) and the held-out set (+1)
-#: every shift at two strengths: a drift or fault a rig meets, and a larger one
-SHIFTS = (
-    "projector_rotation:0.02",
-    "projector_rotation:0.1",
-    "projector_shift:0.05",
-    "projector_shift:0.2",
-    "camera_focal:0.2",
-    "camera_focal:1",
-    "gamma:1.5",
-    "gamma:2.2",
-    "defocus:0.7",
-    "defocus:1.5",
-    "ambient:0.1",
-    "ambient:0.3",
-    "noise:2",
-    "noise:4",
-    "exposure:0.6",
-    "exposure:1.5",
-    "texture:0.3",
-    "texture:0.6",
-    "gloss:0.5",
-    "gloss:1.5",
-    "dead_view:right",
-    "dead_view:down",
-    "dead_view:left",
-    "dead_view:up",
+#: every shift at the two strengths its entry of odmv.sim.shifts.KINDS names: a drift or fault a
+#: rig meets, and a larger one
+SHIFTS = tuple(
+    f"{name}:{x:g}" if isinstance(x, (int, float)) else f"{name}:{x}"
+    for name, kind in KINDS.items()
+    for x in kind.study
 )
 
 
