@@ -13,9 +13,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from odmv.cli import app, run_app
 from odmv.io.manifest import load_manifest
+from odmv.io.validation import validate
 from odmv.sim.shards import merge, parse_shard, shard_ids
 from odmv.sim.writer import SimSettings, simulate
-from odmv.validate import validate
 
 
 def settings_from_config(cfg: DictConfig) -> SimSettings:

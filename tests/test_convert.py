@@ -15,8 +15,8 @@ from odmv.classical.sequences import PspOptions
 from odmv.convert import ConvertError, convert
 from odmv.io.exr import read_channel
 from odmv.io.manifest import HEIGHT_QUANTITY, load_manifest
+from odmv.io.validation import validate
 from odmv.train import train
-from odmv.validate import validate
 
 RNG = np.random.default_rng(0)
 

@@ -275,8 +275,8 @@ def test_a_capture_without_a_usable_fringe_is_refused_naming_the_file(
 
 def test_a_corrupted_fringe_is_named_by_training_and_the_validator(dataset_copy, tmp_path):
     from odmv.data.dataset import DataError
+    from odmv.io.validation import validate
     from odmv.train import train
-    from odmv.validate import validate
 
     path = dataset_copy / "scenes" / "000002" / "fringe" / "up_f2_s00.exr"
     a = read_channel(path, "Y")

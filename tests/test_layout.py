@@ -47,6 +47,17 @@ def test_no_library_module_imports_an_app():
     assert not upward, "\n".join(upward)
 
 
+def test_an_app_imports_no_other_app_but_the_demo_its_steps():
+    """What two apps share lives in the library; the demo alone runs train and evaluate."""
+    across = []
+    for app in sorted(APPS - {"demo"}):
+        for name in _imported(PACKAGE / f"{app}.py"):
+            parts = name.split(".")
+            if len(parts) > 1 and parts[1] in APPS - {app}:
+                across.append(f"odmv/{app}.py imports {name}")
+    assert not across, "\n".join(across)
+
+
 def test_the_import_check_sees_an_upward_import(tmp_path):
     """The check above finds imports inside functions and `from odmv import app` alike."""
     probe = tmp_path / "probe.py"

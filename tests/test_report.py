@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 from helpers import compose_config
 
-from odmv.report import (
+from odmv.study.report import (
     Run,
     _subset_cell,
     build_tables,

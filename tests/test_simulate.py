@@ -17,10 +17,10 @@ from hydra import compose, initialize_config_dir
 from odmv.config import CONF_DIR
 from odmv.io.exr import read_channel
 from odmv.io.manifest import load_manifest
+from odmv.io.validation import validate
 from odmv.sim.scenes import SceneError
 from odmv.sim.writer import SimulationError, rerender
 from odmv.simulate import run
-from odmv.validate import validate
 
 SMALL = ["resolution=64", "progress=false", "workers=1"]
 
