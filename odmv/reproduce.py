@@ -37,11 +37,10 @@ from odmv.classical.row import CAPTURES, classical_row
 from odmv.cli import app, run_app
 from odmv.config import compose_train
 from odmv.io.atomic import write_json, write_text
-from odmv.io.runfolder import CONFIG, METRICS, PREDICTIONS, ROBUSTNESS, SCENES_CSV
+from odmv.io.runfolder import CONFIG, HELDOUT, METRICS, PREDICTIONS, ROBUSTNESS, SCENES_CSV
 from odmv.sim.shifts import parse_shift
 from odmv.study.figures import FIGURE_SCENES, pick_scenes
 from odmv.study.heldout import HeldoutError, score_heldout
-from odmv.study.records import HELDOUT
 from odmv.study.report import write_report
 from odmv.study.results import Run
 from odmv.study.robustness import SHIFTS, score_run

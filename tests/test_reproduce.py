@@ -19,6 +19,7 @@ from odmv.config import CONF_DIR, compose_train
 from odmv.config import contenders as contenders_of
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import footprint_from_depth, subset_masks
+from odmv.io.runfolder import HELDOUT
 from odmv.reproduce import (
     RECORD,
     ReproduceError,
@@ -29,7 +30,6 @@ from odmv.reproduce import (
     trained_key,
 )
 from odmv.rig import VIEW_NAMES
-from odmv.study.records import HELDOUT
 from odmv.study.tables import ABLATION, VIEWS, tables
 from odmv.training.module import FPPModule
 

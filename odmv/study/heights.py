@@ -20,7 +20,8 @@ import argparse
 
 import numpy as np
 
-from odmv.study.records import PREDICTIONS, load_predictions, run_groups
+from odmv.io.runfolder import PREDICTIONS
+from odmv.study.records import load_predictions, run_groups
 
 BANDS_MM = [0.0, 0.5, 2.0, 5.0, 8.0, 12.0, np.inf]
 

@@ -25,10 +25,10 @@ from pathlib import Path
 from odmv.config import settings_hash
 from odmv.io.atomic import write_json
 from odmv.io.manifest import MANIFEST
-from odmv.io.runfolder import portable, recorded_dataset
+from odmv.io.runfolder import HELDOUT, METRICS, portable, recorded_dataset
 from odmv.sim.shifts import Shift
 from odmv.sim.writer import SimSettings, simulate
-from odmv.study.records import HELDOUT, METRICS, best_checkpoint
+from odmv.study.records import best_checkpoint
 
 SCENES = 200
 

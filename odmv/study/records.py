@@ -11,11 +11,8 @@ import hydra
 import numpy as np
 
 from odmv.config import CONF_DIR  # noqa: F401  (registers the config resolvers)
-from odmv.io.runfolder import HELDOUT, METRICS, PREDICTIONS, ROBUSTNESS, SCENES_CSV
 from odmv.training.checkpoint import best_checkpoint
 from odmv.training.module import load_module
-
-__all__ = ["HELDOUT", "METRICS", "PREDICTIONS", "ROBUSTNESS", "SCENES_CSV"]
 
 
 def read_only(data: dict, **changes) -> dict:

@@ -36,11 +36,10 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from odmv.io.atomic import write_atomic, write_csv, write_json, write_text
-from odmv.io.runfolder import recorded_dataset
+from odmv.io.runfolder import METRICS, ROBUSTNESS, recorded_dataset
 from odmv.rig import VIEW_NAMES
 from odmv.sim.shifts import KINDS, NOMINAL_SHIFT, Shift, parse_shift
 from odmv.study.heldout import evaluate_on, source_seed, twin_dataset, twin_settings
-from odmv.study.records import METRICS, ROBUSTNESS
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402

@@ -19,8 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
+from odmv.io.runfolder import METRICS, PREDICTIONS
 from odmv.study.heights import BANDS_MM
-from odmv.study.records import METRICS, PREDICTIONS, load_predictions, run_data, run_groups
+from odmv.study.records import load_predictions, run_data, run_groups
 
 
 def test_masks(run: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:

@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from odmv.study.records import HELDOUT, METRICS, SCENES_CSV, run_groups
+from odmv.io.runfolder import HELDOUT, METRICS, SCENES_CSV
+from odmv.study.records import run_groups
 
 
 def _stat(values: list[float]) -> str:
