@@ -21,15 +21,20 @@ from odmv.sim.shifts import KINDS
 CONF_DIR = str(Path(__file__).resolve().parent / "conf")
 
 
-def compose_train(overrides: list[str], hydra_cfg: bool = False) -> DictConfig:
-    """The train config for ``overrides``, inside a running Hydra app or in a fresh one."""
+def compose_app(name: str, overrides: list[str], hydra_cfg: bool = False) -> DictConfig:
+    """App ``name``'s config for ``overrides``, inside a running Hydra app or in a fresh one."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
     if GlobalHydra.instance().is_initialized():
-        return compose("train", overrides=overrides, return_hydra_config=hydra_cfg)
+        return compose(name, overrides=overrides, return_hydra_config=hydra_cfg)
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return compose("train", overrides=overrides, return_hydra_config=hydra_cfg)
+        return compose(name, overrides=overrides, return_hydra_config=hydra_cfg)
+
+
+def compose_train(overrides: list[str], hydra_cfg: bool = False) -> DictConfig:
+    """The train config for ``overrides`` (:func:`compose_app`)."""
+    return compose_app("train", overrides, hydra_cfg)
 
 
 def model_configs() -> dict[str, DictConfig]:

@@ -14,8 +14,8 @@ from hydra import compose, initialize_config_dir
 
 from odmv.cli import run_app, tool
 from odmv.config import CONF_DIR  # (and registers the config resolvers)
-from odmv.evaluate import evaluate, report
 from odmv.train import train
+from odmv.training.evaluation import evaluate, report
 
 
 def main(argv: list[str]) -> int:

@@ -9,8 +9,8 @@ import sys
 import pytest
 from helpers import compose_config
 
-from odmv.evaluate import evaluate
 from odmv.sim.writer import SimSettings, simulate
+from odmv.training.evaluation import evaluate
 
 DDP = ["trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2", "trainer.precision=32"]
 

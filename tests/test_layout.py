@@ -47,6 +47,19 @@ def test_no_library_module_imports_an_app():
     assert not upward, "\n".join(upward)
 
 
+def test_no_library_module_runs_an_app_as_a_subprocess():
+    """``[sys.executable, "-m", "odmv.evaluate", ...]`` in the library: the library calls the
+    function the app calls instead."""
+    runs = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if path.parent == PACKAGE and path.stem in APPS:
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Constant) and node.value in {f"odmv.{a}" for a in APPS}:
+                runs.append(f"{path.relative_to(PACKAGE.parent)} runs {node.value}")
+    assert not runs, "\n".join(runs)
+
+
 def test_an_app_imports_no_other_app_but_the_demo_its_steps():
     """What two apps share lives in the library; the demo alone runs train and evaluate."""
     across = []

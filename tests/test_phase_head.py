@@ -15,13 +15,13 @@ from odmv.classical.fringe import triangulate_depth
 from odmv.classical.geometry import depth_from_offset, triangulation_maps
 from odmv.data.dataset import DataError, check_spec, load_scene
 from odmv.deploy.onnx import METADATA_KEY, export_onnx
-from odmv.evaluate import evaluate
 from odmv.io.exr import read_channel
 from odmv.io.manifest import load_manifest
 from odmv.models.phase import lowest_order, view_depths
 from odmv.predict import predict
 from odmv.rig import VIEW_NAMES
 from odmv.train import train
+from odmv.training.evaluation import evaluate
 from odmv.training.losses import LossWeights, composite_loss
 from odmv.training.module import load_module
 

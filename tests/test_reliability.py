@@ -17,11 +17,11 @@ from tensorboard.plugins.hparams import plugin_data_pb2
 
 import odmv.sim.writer as writer
 from odmv.data.dataset import DataError
-from odmv.evaluate import evaluate, report
 from odmv.sim.scenes import SceneError
 from odmv.sim.writer import SimSettings, SimulationError, simulate
 from odmv.train import train
 from odmv.training.checkpoint import CheckpointError
+from odmv.training.evaluation import evaluate, report
 from odmv.training.module import load_module
 
 

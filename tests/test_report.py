@@ -174,8 +174,8 @@ def test_odmvnet_at_another_width_is_judged_against_the_baseline_of_its_size():
 def test_a_demo_run_with_its_evaluation_folder_is_one_run(trained, tmp_path):
     """The demo writes outputs/demo/<time>/ (the run) and its evaluation/ (odmv.evaluate's
     metrics of the same checkpoint): the report takes the run and passes over the evaluation."""
-    from odmv.evaluate import evaluate
     from odmv.study.results import find_runs
+    from odmv.training.evaluation import evaluate
 
     run = shutil.copytree(trained[0], tmp_path / "demo" / "2026-12-06_08-00-00")
     ckpt = run / "checkpoints" / Path(trained[1]["best_checkpoint"]).name

@@ -16,11 +16,11 @@ import torch
 from helpers import compose_config, tiny_overrides
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from odmv.evaluate import evaluate, report
 from odmv.io.exr import read_channel, write_exr
 from odmv.io.manifest import FringeSpec
 from odmv.predict import predict
 from odmv.train import train
+from odmv.training.evaluation import evaluate, report
 from odmv.training.module import load_module
 
 

@@ -6,7 +6,7 @@ being compared. The held-out set is 200 fresh scenes of the same twin: the same 
 renderer and scene mix as the runs' dataset, the next scene seed (for the protocols' seed 0,
 seed 1: scene ``i`` is drawn from the seed sequence ``[1, i]``, disjoint from the training
 scenes' ``[0, i]``), all labelled test. It is rendered once beside the dataset. A run's best
-checkpoint is scored on it with ``python -m odmv.evaluate``; its metrics go to ``heldout.json``
+checkpoint is scored on it as ``python -m odmv.evaluate`` scores; its metrics go to ``heldout.json``
 in the run folder (the constant predictor there is the run's own mean training depth).
 
     python -m odmv.study heldout 'outputs/accuracy/s4-*-seed*' [--threads 2]
@@ -15,20 +15,23 @@ in the run folder (the constant predictor there is the run's own mean training d
 from __future__ import annotations
 
 import argparse
+import contextlib
 import glob
+import io
 import json
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
-from odmv.config import settings_hash
+import torch
+
+from odmv.config import compose_app, settings_hash
 from odmv.io.atomic import write_json
 from odmv.io.manifest import MANIFEST
 from odmv.io.runfolder import HELDOUT, METRICS, portable, recorded_dataset
 from odmv.sim.shifts import Shift
 from odmv.sim.writer import SimSettings, simulate
 from odmv.study.records import best_checkpoint
+from odmv.training.evaluation import evaluate
 
 SCENES = 200
 
@@ -109,32 +112,32 @@ def source_seed(source: Path) -> int:
 def evaluate_on(
     run: Path, data: Path, threads: int | None, what: str, extra: tuple[str, ...] = ()
 ) -> dict:
-    """Test metrics of ``run``'s best checkpoint on dataset ``data`` (``python -m
-    odmv.evaluate`` in a clean process, with the overrides ``extra``; ``what`` names the
-    scoring in errors)."""
+    """Test metrics of ``run``'s best checkpoint on dataset ``data`` (what ``python -m
+    odmv.evaluate`` computes, with the overrides ``extra``; ``what`` names the scoring in
+    errors). torch's thread count is ``threads`` while it runs, and restored after."""
     ckpt, _ = best_checkpoint(run)
     if not ckpt.is_file():
         raise HeldoutError(f"{run}: its best checkpoint {ckpt.name} is gone; it cannot be scored")
     scratch = run / f".{what}"
     shutil.rmtree(scratch, ignore_errors=True)
-    cmd = [
-        sys.executable,
-        "-m",
-        "odmv.evaluate",
+    overrides = [
         f"ckpt_path={ckpt}",
         f"root={data}",
         "figures=0",
         "progress=false",
         *([f"threads={threads}"] if threads else []),
-        f"hydra.run.dir={scratch}",
+        f"paths.output_dir={scratch}",
         *extra,
     ]
-    proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
-    if proc.returncode != 0 or not (scratch / METRICS).is_file():
-        last = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or ["no output"]
-        raise HeldoutError(f"{run}: {what} scoring failed (exit {proc.returncode}): {last[0]}")
-    metrics = json.loads((scratch / METRICS).read_text())
-    shutil.rmtree(scratch, ignore_errors=True)
+    before = torch.get_num_threads()
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):  # its progress lines, not the study's
+            metrics = evaluate(compose_app("evaluate", overrides), overrides)
+    except (ValueError, OSError, RuntimeError) as e:
+        raise HeldoutError(f"{run}: {what} scoring failed: {e}") from None
+    finally:
+        torch.set_num_threads(before)
+        shutil.rmtree(scratch, ignore_errors=True)
     return metrics | {"dataset": portable(data)}
 
 

@@ -12,13 +12,8 @@ import numpy as np
 
 from odmv.config import CONF_DIR  # noqa: F401  (registers the config resolvers)
 from odmv.training.checkpoint import best_checkpoint
+from odmv.training.evaluation import read_only
 from odmv.training.module import load_module
-
-
-def read_only(data: dict, **changes) -> dict:
-    """A saved data config (a checkpoint's) that reads its dataset and never renders one, with
-    ``changes`` on top."""
-    return {**data, "progress": False, "render": False, "simulate": None, **changes}
 
 
 def run_data(run: Path, stage: str, views: list[str] | None = None):
