@@ -20,16 +20,16 @@ from odmv.config import contenders as contenders_of
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import footprint_from_depth, subset_masks
 from odmv.io.runfolder import HELDOUT
-from odmv.reproduce import (
+from odmv.reproduce import reproduce
+from odmv.rig import VIEW_NAMES
+from odmv.study.runner import (
     RECORD,
     ReproduceError,
     _run_key,
     plan,
-    reproduce,
     sweep_overrides,
     trained_key,
 )
-from odmv.rig import VIEW_NAMES
 from odmv.study.tables import ABLATION, VIEWS, tables
 from odmv.training.module import FPPModule
 
@@ -477,7 +477,7 @@ def _reproduce_cfg(overrides, runs, out):
 def test_keeping_a_run_keeps_the_robustness_scores_its_record_gained(tmp_path):
     """`odmv.study robustness` scores a committed record in place; keeping the same run again
     must not drop those scores, while a record of another training result is replaced whole."""
-    from odmv.reproduce import keep
+    from odmv.study.runner import keep
 
     folder, record = tmp_path / "run", tmp_path / "record"
     folder.mkdir()
