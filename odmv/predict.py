@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import matplotlib
 import numpy as np
@@ -235,49 +236,16 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
         for scene in scenes:
             out = out_root / scene.name if len(scenes) > 1 else out_root
             if predictor is not None:
-                rig = default_rig if scene.manifest is None else scene.manifest.rig
-                rig = rig or (default_rig if scene.manifest is not None else Rig())
-                have = present_views(scene, predictor, list(cfg.get("views") or []))
-                if have != list(predictor.views):
-                    print(f"{scene.name}: views {', '.join(have)} (the others missing)", flush=True)
-                images = network_images(scene, predictor, reader, rig, have)
-                available = np.array([v in have for v in predictor.views], np.float32)
-                x = predictor.inputs(images, rig, available)
-                result = predictor.run(x, predictor.calibration(rig))
-                depth = result["depth_mm"][0, 0].astype(np.float32)
-                if "weights" in result:  # head=phase: each view's share of the depth
-                    write_weights(out, result["weights"][0], predictor.views)
-                period, used = predictor.input_spec.get("period_px"), predictor.views
+                r = _by_net(scene, predictor, reader, default_rig, cfg, out)
             elif cfg.method == "ftp":
-                rig = scene.manifest.rig if scene.manifest else default_rig
-                used = list(cfg.get("views") or (scene.manifest.views if scene.manifest else views))
-                images, period = single_shot_images(scene, cfg, reader, used)
-                if rig is None:
-                    raise DataError(f"{scene.folder}: method=ftp: {NO_RIG}")
-                m = scene.manifest or load_manifest(cfg.manifest)
-                step, n_steps = m.fringe.train_step, m.fringe.steps
-                depth = single_shot_depth(images, period, step, n_steps, rig, used)
-                depth = depth.astype(np.float32)
+                r = _by_ftp(scene, reader, default_rig, cfg, views)
             else:
-                rig = scene.manifest.rig if scene.manifest else default_rig
-                seq = read_sequences(scene, reader, cfg, rig)
-                h, w = seq.stack.shape[-2:]
-                cam = rig.camera_at(w, h) if rig is not None else None
-                projectors = [rig.projectors()[v] for v in seq.views] if rig is not None else None
-                decoded = decode_views(seq.stack, seq.options, cam, projectors)
-                phases = write_phases(out, seq.views, decoded, seq.options)
-                if rig is None:
-                    print(
-                        f"{scene.name}: wrote the phase of views {', '.join(seq.views)}; depth "
-                        "needs the rig's calibration (calibration=FILE)",
-                        flush=True,
-                    )
-                    results.append({"phase": phases[0], "files": phases})
-                    bar.advance(task)
-                    continue
-                depth = fused_depth(decoded, cam, projectors).astype(np.float32)
-                images, period = seq.stack[:, -1, 0], decoded[0].period  # projector px
-                used = seq.views
+                r = _by_psp(scene, reader, default_rig, cfg, out)
+            if r.depth is None:  # the phase only: depth needs the rig's calibration
+                results.append({"phase": r.phases[0], "files": list(r.phases)})
+                bar.advance(task)
+                continue
+            depth, rig, images, period, used = r.depth, r.rig, r.images, r.period, r.used
             h, w = depth.shape
             quantity = predictor.input_spec.get("quantity", "depth") if predictor else "depth"
             cam = None
@@ -303,6 +271,74 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
         flush=True,
     )
     return results
+
+
+class Reconstruction(NamedTuple):
+    """One scene reconstructed: its depth (mm; None where only the phase could be), the rig
+    it was reconstructed with, the images and fringe period (projector px) that tell lit
+    pixels, the views used, and the phase files written (method=psp)."""
+
+    depth: np.ndarray | None
+    rig: Rig | None
+    images: np.ndarray | None
+    period: float | None
+    used: list[str]
+    phases: tuple[Path, ...] = ()
+
+
+def _by_net(scene: Scene, predictor, reader, default_rig, cfg, out: Path) -> Reconstruction:
+    """The net's depth from the scene's images (a phase-head net's fusion weights written)."""
+    rig = default_rig if scene.manifest is None else scene.manifest.rig
+    rig = rig or (default_rig if scene.manifest is not None else Rig())
+    have = present_views(scene, predictor, list(cfg.get("views") or []))
+    if have != list(predictor.views):
+        print(f"{scene.name}: views {', '.join(have)} (the others missing)", flush=True)
+    images = network_images(scene, predictor, reader, rig, have)
+    available = np.array([v in have for v in predictor.views], np.float32)
+    x = predictor.inputs(images, rig, available)
+    result = predictor.run(x, predictor.calibration(rig))
+    if "weights" in result:  # head=phase: each view's share of the depth
+        write_weights(out, result["weights"][0], predictor.views)
+    depth = result["depth_mm"][0, 0].astype(np.float32)
+    return Reconstruction(
+        depth, rig, images, predictor.input_spec.get("period_px"), predictor.views
+    )
+
+
+def _by_ftp(scene: Scene, reader, default_rig, cfg, views: list[str]) -> Reconstruction:
+    """Single-shot Fourier-transform profilometry of one image per projector."""
+    rig = scene.manifest.rig if scene.manifest else default_rig
+    used = list(cfg.get("views") or (scene.manifest.views if scene.manifest else views))
+    images, period = single_shot_images(scene, cfg, reader, used)
+    if rig is None:
+        raise DataError(f"{scene.folder}: method=ftp: {NO_RIG}")
+    m = scene.manifest or load_manifest(cfg.manifest)
+    depth = single_shot_depth(images, period, m.fringe.train_step, m.fringe.steps, rig, used)
+    return Reconstruction(depth.astype(np.float32), rig, images, period, used)
+
+
+def _by_psp(scene: Scene, reader, default_rig, cfg, out: Path) -> Reconstruction:
+    """Phase shifting of each projector's sequences: the phase written, and the fused depth
+    where the rig's calibration is known."""
+    rig = scene.manifest.rig if scene.manifest else default_rig
+    seq = read_sequences(scene, reader, cfg, rig)
+    h, w = seq.stack.shape[-2:]
+    cam = rig.camera_at(w, h) if rig is not None else None
+    projectors = [rig.projectors()[v] for v in seq.views] if rig is not None else None
+    decoded = decode_views(seq.stack, seq.options, cam, projectors)
+    phases = write_phases(out, seq.views, decoded, seq.options)
+    if rig is None:
+        print(
+            f"{scene.name}: wrote the phase of views {', '.join(seq.views)}; depth needs the "
+            "rig's calibration (calibration=FILE)",
+            flush=True,
+        )
+        return Reconstruction(None, None, None, None, seq.views, tuple(phases))
+    depth = fused_depth(decoded, cam, projectors).astype(np.float32)
+    # the finest frequency's first image of each view tells lit pixels
+    return Reconstruction(
+        depth, rig, seq.stack[:, -1, 0], decoded[0].period, seq.views, tuple(phases)
+    )
 
 
 def write_phases(out: Path, views: list[str], decoded: list, options: PspOptions) -> list[Path]:
