@@ -1,14 +1,6 @@
-"""The paper's tables and figures from run records (``python -m odmv.report`` writes them).
-
-``runs`` are run folders (holding ``metrics.json``), sweep folders, or a reproduction's runs
-folder; every ``metrics.json`` below them is read. Runs are placed by what they are (model,
-views, Table I row), seeds of one row are averaged (mean ± std), and the layout is the paper's:
-the view-count table (Sec. III.A), Table I (module ablation, S = 4) and Table II (models). A row
-without a finished run is printed as missing, never filled in. Writes ``tables.md``, one CSV per
-table, ``runs.csv`` (every run), and PNG figures: Fig. 6 (inputs, ground truth, every Table II
-model's prediction and |error| on one mm scale, for the same test scenes), Fig. 7 (scanline
-profiles of all models on one plot) and a bar chart per table.
-"""
+"""The paper's tables and figures from run records: runs placed by what they are, seeds
+averaged, missing rows said, figures drawn (``python -m odmv.report`` writes them; what it
+writes: that app's docstring)."""
 
 from __future__ import annotations
 

@@ -1,11 +1,6 @@
-"""A checkpoint evaluated on a test split (``python -m odmv.evaluate`` runs it).
-
-Writes ``metrics.json`` (mm, all pixels and pixels shadowed in at least one input view, next to
-a constant-depth predictor) and per-sample figures like the paper's Figs. 4-7: input fringes,
-ground truth, prediction, absolute error on a fixed mm scale, and a depth profile along a
-scanline. The data settings saved in the checkpoint are used; only ``root=PATH`` and
-``data.KEY=VALUE`` on the command line change them, and the dataset is read, never rendered.
-"""
+"""A checkpoint evaluated on a test split: mm metrics beside a constant-depth predictor, per
+scene family, and figures (``python -m odmv.evaluate`` runs it; what it writes: that app's
+docstring)."""
 
 from __future__ import annotations
 
