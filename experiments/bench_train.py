@@ -43,7 +43,7 @@ from odmv.training.bench import (
     synthetic_batch,
 )
 from odmv.training.losses import LossWeights, composite_loss
-from odmv.training.module import net_input
+from odmv.training.module import make_optimizer, net_input
 
 
 def main() -> None:
@@ -98,9 +98,7 @@ def main() -> None:
                 p.data = p.data.contiguous(memory_format=fmt)
     net = torch.compile(module.net, mode=args.compile_mode) if args.compile else module.net
     weights = LossWeights(**cfg.loss)
-    opt = torch.optim.Adam(
-        module.parameters(), **OmegaConf.to_container(cfg.optimizer, resolve=True)
-    )
+    opt = make_optimizer(module.parameters(), OmegaConf.to_container(cfg.optimizer, resolve=True))
     batch = synthetic_batch(cfg, batch_size, device)
     dtype = {"bf16-mixed": torch.bfloat16, "16-mixed": torch.float16}.get(args.precision)
     scaler = torch.amp.GradScaler(device.type, enabled=args.precision == "16-mixed")

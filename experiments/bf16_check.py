@@ -22,12 +22,12 @@ from omegaconf import OmegaConf
 from odmv.cli import quiet_lightning
 from odmv.training.bench import PRESETS, build_module, preset_config, synthetic_batch
 from odmv.training.losses import LossWeights, composite_loss
-from odmv.training.module import net_input
+from odmv.training.module import make_optimizer, net_input
 
 
 def run(module, batch, weights, opt_cfg, bf16: bool, device) -> tuple[float, torch.Tensor, float]:
     """One training step: its loss, its gradient (flattened) and the depth MAE (mm) after it."""
-    opt = torch.optim.Adam(module.parameters(), **opt_cfg)
+    opt = make_optimizer(module.parameters(), opt_cfg)
     with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
         loss = composite_loss(module.net(net_input(batch)), batch, weights)["loss"]
     loss.backward()

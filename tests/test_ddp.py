@@ -60,7 +60,7 @@ def test_ddp_on_cpu_counts_each_test_scene_once(uneven_dataset, tmp_path):
     cfg = compose_config(
         "evaluate",
         [
-            f"ckpt_path={metrics['best_checkpoint']}",
+            f"ckpt_path={run / metrics['best_checkpoint']}",
             f"paths.output_dir={tmp_path / 'eval'}",
             "figures=0",
             "accelerator=cpu",

@@ -42,6 +42,13 @@ OPTIMIZER = "torch.optim.Adam"
 SCHEDULER = "torch.optim.lr_scheduler.CosineAnnealingWarmRestarts"
 
 
+def make_optimizer(params, cfg: dict | None):
+    """The optimizer config ``cfg`` names (``_target_`` and its arguments; Adam where it names
+    none, as in checkpoints from before optimizers were configs) over ``params``."""
+    named = {"_target_": OPTIMIZER, **(cfg or {"lr": 1e-4})}
+    return hydra.utils.instantiate(named | {"_partial_": True})(params)
+
+
 class NonFiniteLossError(ValueError):
     """The training loss became NaN or infinite; training stops."""
 
@@ -256,9 +263,8 @@ class FPPModule(L.LightningModule):
 
     # ---------------------------------------------------------------- optimisation
     def configure_optimizers(self):
-        # a checkpoint from before optimizers were configs names no _target_: Adam and cosine
-        opt_cfg = {"_target_": OPTIMIZER, **(self.hparams.optimizer or {"lr": 1e-4})}
-        opt = hydra.utils.instantiate(opt_cfg | {"_partial_": True})(self.parameters())
+        opt = make_optimizer(self.parameters(), self.hparams.optimizer)
+        # a checkpoint from before schedules were configs names no _target_: cosine
         sch_cfg = {"_target_": SCHEDULER, **(self.hparams.scheduler or {"T_0": 10})}
         interval = sch_cfg.pop("interval", "epoch")
         sched = hydra.utils.instantiate(sch_cfg | {"_partial_": True})(opt)
