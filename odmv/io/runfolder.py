@@ -19,11 +19,11 @@ ROBUSTNESS = "robustness.json"
 DATA_DIR = "data"
 
 
-def portable(path: str | Path) -> str:
-    """``path`` as a record stores it: relative to the working directory (the checkout a run
-    or study starts in) where it lies below it, else absolute."""
+def portable(path: str | Path, base: str | Path | None = None) -> str:
+    """``path`` as a record stores it: relative to ``base`` (default: the working directory,
+    the checkout a run or study starts in) where it lies below it, else absolute."""
     try:
-        return str(Path(path).resolve().relative_to(Path.cwd().resolve()))
+        return str(Path(path).resolve().relative_to(Path(base or Path.cwd()).resolve()))
     except ValueError:
         return str(Path(path).absolute())
 
@@ -33,11 +33,7 @@ def portable_record(metrics: dict, run: Path) -> dict:
     run folder (it moves with it), the dataset :func:`portable`."""
     out = dict(metrics)
     if out.get("best_checkpoint"):
-        ckpt = Path(out["best_checkpoint"])
-        try:
-            out["best_checkpoint"] = str(ckpt.resolve().relative_to(Path(run).resolve()))
-        except ValueError:
-            out["best_checkpoint"] = str(ckpt.absolute())
+        out["best_checkpoint"] = portable(out["best_checkpoint"], run)
     if out.get("dataset"):
         out["dataset"] = portable(out["dataset"])
     return out
