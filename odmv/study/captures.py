@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 from pathlib import Path
 
@@ -205,7 +206,7 @@ def main(argv: list[str]) -> int:
         rows += net_rows(args.runs, classical_pixels(work))
     except (DataError, ValueError) as e:
         raise SystemExit(f"error: {e}") from None
-    command = "python -m odmv.study captures " + " ".join(argv)
+    command = "python -m odmv.study captures " + shlex.join(argv)
     write_text(args.out / "captures.md", markdown(rows, command))
     write_csv(args.out / "captures.csv", rows)
     figure(args.out / "captures.png", rows)
