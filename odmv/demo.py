@@ -14,6 +14,7 @@ from hydra import compose, initialize_config_dir
 
 from odmv.cli import run_app, tool
 from odmv.config import CONF_DIR  # (and registers the config resolvers)
+from odmv.page.document import page_of
 from odmv.train import train
 from odmv.training.evaluation import evaluate, report
 
@@ -49,6 +50,7 @@ def main(argv: list[str]) -> int:
     print(f"wall time: {minutes:.1f} min (trained in {precision})")
     print(f"TensorBoard: {tool('tensorboard')} --logdir {out / 'tensorboard'}")
     print(f"figures    : {out / 'evaluation' / 'figures'}")
+    print(f"page       : {page_of(out)} (open it in a browser, offline)")
     print("\nwhat to run next, from this run:")
     print("\n".join(f"  {line}" for line in next_steps(out, Path(metrics["best_checkpoint"]))))
     return 0

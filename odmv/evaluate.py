@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from omegaconf import DictConfig
 
-from odmv.cli import app, run_app
+from odmv.cli import app, run_app, tool
 from odmv.training.evaluation import evaluate, report
 
 
@@ -20,6 +20,7 @@ def main(cfg: DictConfig) -> None:
     metrics = run_app(lambda: evaluate(cfg), cfg.paths.output_dir)
     print(report(metrics))
     print(f"metrics and figures: {cfg.paths.output_dir}")
+    print(f"its page: {tool('python')} -m odmv.view {cfg.paths.output_dir}")
 
 
 if __name__ == "__main__":

@@ -10,7 +10,9 @@ TIFF, BMP or NPY; odmv.io.images), a folder of such folders, or a glob. For each
 writes ``depth.exr`` (channel Z, camera-axis depth in mm, with unit and provenance in the
 header), ``depth.png`` (a preview) and ``points.ply`` (camera frame, mm; valid pixels only,
 and with ``drop_unlit`` only pixels some projector lights) into ``out`` (several scenes: one
-sub-folder each). The intensity scale and any resizing are printed, never silent.
+sub-folder each), and ``page.html``: the depth in 3D beside the inputs (and against the ground
+truth where the input is a dataset scene). The intensity scale and any resizing are printed,
+never silent.
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ from odmv.io.manifest import (
     load_manifest,
 )
 from odmv.io.pointcloud import point_cloud, write_ply
+from odmv.page.document import page_of
 from odmv.rig import VIEW_NAMES, Camera, Rig
 
 matplotlib.use("Agg")
@@ -415,6 +418,9 @@ def main(cfg: DictConfig) -> None:
     if len(results) == 1:  # (method=psp without a calibration wrote the phase only)
         names = {"depth": "depth (mm)", "points": "point cloud", "phase": "phase (rad)"}
         print("\n".join(f"{names[k]}: {results[0][k]}" for k in names if results[0].get(k)))
+    if any("depth" in r for r in results):  # a page needs a depth map
+        page = run_app(lambda: page_of(Path(cfg.out or cfg.paths.output_dir)))
+        print(f"page: {page} (open it in a browser, offline)")
 
 
 if __name__ == "__main__":

@@ -7,7 +7,8 @@ the view-count table (Sec. III.A), Table I (module ablation, S = 4) and Table II
 without a finished run is printed as missing, never filled in. Writes ``tables.md``, one CSV per
 table, ``runs.csv`` (every run), and PNG figures: Fig. 6 (inputs, ground truth, every Table II
 model's prediction and |error| on one mm scale, for the same test scenes), Fig. 7 (scanline
-profiles of all models on one plot) and a bar chart per table.
+profiles of all models on one plot) and a bar chart per table; and ``page.html``, the same
+results as one offline page to turn in 3D (odmv.page; ``python -m odmv.view`` writes it again).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from odmv.cli import app, run_app
+from odmv.page.document import page_of
 from odmv.study.report import write_report
 
 
@@ -29,6 +31,8 @@ def main(cfg: DictConfig) -> None:
         )
     )
     print(f"report: {path}")
+    page = run_app(lambda: page_of(Path(cfg.out)))
+    print(f"page  : {page} (open it in a browser, offline)")
 
 
 if __name__ == "__main__":

@@ -313,6 +313,7 @@ def main(cfg: DictConfig) -> Metrics | JobFailed:
             "  test: "
             + ", ".join(f"{k}={v:.4f}" for k, v in metrics.items() if k.startswith("test/"))
         )
+        rank_zero_print(f"  its page: {tool('python')} -m odmv.view {out}")
     return Metrics(metrics, run_cfg.get("optimized_metric"))
 
 

@@ -26,3 +26,5 @@ def test_the_commands_the_demo_prints_work_as_printed(trained, tmp_path):
     assert (run / "prediction" / "depth.exr").is_file()
     assert (run / "onnx" / "model.onnx").is_file()
     assert (run / "report" / "tables.md").is_file()
+    for made in ("prediction", "report"):  # each writes its offline page
+        assert "Plotly.newPlot" in (run / made / "page.html").read_text()

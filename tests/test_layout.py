@@ -10,7 +10,7 @@ PACKAGE = Path(odmv.__file__).parent
 #: what ``python -m odmv.X`` runs
 APPS = {
     "convert", "demo", "evaluate", "export", "predict", "report", "reproduce", "simulate",
-    "train", "validate",
+    "train", "validate", "view",
 }  # fmt: skip
 #: the leaves every layer imports
 LEAVES = {"__init__", "cli", "config", "rig"}

@@ -25,6 +25,7 @@ missing).
 from __future__ import annotations
 
 import argparse
+import csv
 import functools
 import glob
 import json
@@ -38,7 +39,7 @@ from omegaconf import OmegaConf
 from odmv.io.atomic import write_atomic, write_csv, write_json, write_text
 from odmv.io.runfolder import METRICS, ROBUSTNESS, recorded_dataset
 from odmv.rig import VIEW_NAMES
-from odmv.sim.shifts import KINDS, NOMINAL_SHIFT, Shift, parse_shift
+from odmv.sim.shifts import KINDS, NOMINAL, NOMINAL_SHIFT, Shift, parse_shift
 from odmv.study.heldout import evaluate_on, source_seed, twin_dataset, twin_settings
 
 matplotlib.use("Agg")
@@ -239,7 +240,7 @@ def write_tables(
         md.append("")
     md += _dropout_table(rows, views or {})
     write_csv(out / "robustness.csv", csv_rows)
-    _figure(rows, shifts, out / "robustness.png")
+    figure(csv_rows, out / "robustness.png")
     return write_text(out / "robustness.md", "\n".join(md) + "\n")
 
 
@@ -342,39 +343,78 @@ def _scenes(rows: dict[str, list[dict]]) -> str:
     return ", ".join(str(n) for n in sorted(found - {None})) or "?"
 
 
-def _figure(rows: dict[str, list[dict]], shifts: list[Shift], path: Path) -> None:
-    """One panel per shift: each model's MAE ratio to nominal against the strength."""
-    names = list(dict.fromkeys(s.name for s in shifts))
+#: one colour and marker per series (matplotlib's ten-colour cycle would repeat at the 11th)
+STYLES = [
+    (plt.get_cmap("tab20")(i), marker)
+    for i, marker in zip(range(20), "osD^vP*Xph<>d8H+x|_1", strict=True)
+]
+
+
+def figure(csv_rows: list[dict], path: Path) -> None:
+    """One panel per shift: each model's MAE ratio to its nominal MAE against the strength
+    (``robustness.csv``'s rows), one colour and marker per model, the legend below the panels."""
+    models = list(dict.fromkeys(r["model"] for r in csv_rows))
+    names = list(dict.fromkeys(r["set"].split(":")[0] for r in csv_rows if ":" in r["set"]))
     cols = min(4, len(names)) or 1
-    fig, axes = plt.subplots(
-        (len(names) + cols - 1) // cols,
-        cols,
-        figsize=(3.2 * cols, 2.6 * ((len(names) + cols - 1) // cols)),
-        squeeze=False,
-    )
+    n_rows = (len(names) + cols - 1) // cols
+    fig, axes = plt.subplots(n_rows, cols, figsize=(3.4 * cols, 2.7 * n_rows + 1.2),
+                             squeeze=False)  # fmt: skip
     for ax, name in zip(axes.flat, names, strict=False):
-        group = [s for s in shifts if s.name == name]
-        for model, seeds in rows.items():
-            nominal = _mean(seeds, "nominal")
-            ratio = [_mean(seeds, s.label()) / nominal for s in group]
-            xs = range(len(group)) if name == "dead_view" else [float(s.value) for s in group]
-            ax.plot(list(xs), ratio, marker="o", label=model)
-        if name == "dead_view":
-            ax.set_xticks(range(len(group)), [str(s.value) for s in group])
+        for m, model in enumerate(models):
+            points = [
+                (r["set"].split(":", 1)[1], float(r["ratio_to_nominal"]))
+                for r in csv_rows
+                if r["model"] == model
+                and r["set"].startswith(name + ":")
+                and np.isfinite(float(r["ratio_to_nominal"] or "nan"))
+            ]
+            if not points:
+                continue
+            nominal = NOMINAL.get(name)
+            if isinstance(nominal, (int, float)):
+                points = sorted([(float(v), q) for v, q in points] + [(float(nominal), 1.0)])
+                xs = [v for v, _ in points]
+            else:  # views: categories
+                xs = list(range(len(points)))
+                ax.set_xticks(xs, [v for v, _ in points])
+            colour, marker = STYLES[m % len(STYLES)]
+            ax.plot(xs, [q for _, q in points], color=colour, marker=marker, ms=5, label=model)
         ax.axhline(1.0, color="grey", lw=0.5)
+        unit = KINDS[name].unit if name in KINDS else "view"
         ax.set_title(name, fontsize=9)
+        ax.set_xlabel(unit, fontsize=8)
         ax.set_ylabel("MAE / nominal", fontsize=8)
     for ax in list(axes.flat)[len(names) :]:
         ax.axis("off")
-    axes.flat[0].legend(fontsize=7)
-    fig.tight_layout()
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    for ax in list(axes.flat)[1 : len(names)]:  # models only some panels show
+        for h, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            if label not in labels:
+                handles.append(h)
+                labels.append(label)
+    fig.legend(handles, labels, loc="lower center", ncol=min(4, len(labels)), fontsize=7,
+               frameon=False)  # fmt: skip
+    rows_of_legend = (len(labels) + 3) // 4
+    fig.tight_layout(rect=(0, 0.03 + 0.22 * rows_of_legend / (2.7 * n_rows + 1.2), 1, 1))
     write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=90, format="png"))
     plt.close(fig)
 
 
+def replot(folder: Path) -> Path:
+    """Redraw ``folder/robustness.png`` from its ``robustness.csv`` (no scoring)."""
+    table = Path(folder) / "robustness.csv"
+    if not table.is_file():
+        raise SystemExit(f"error: {table}: no such file")
+    figure(list(csv.DictReader(table.open())), Path(folder) / "robustness.png")
+    return Path(folder) / "robustness.png"
+
+
 def main(argv: list[str]) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("runs", nargs="+", help="globs of finished run folders")
+    ap.add_argument("runs", nargs="*", help="globs of finished run folders")
+    ap.add_argument(
+        "--replot", type=Path, metavar="DIR", help="redraw DIR/robustness.png from its CSV only"
+    )
     ap.add_argument("--shifts", nargs="+", default=list(SHIFTS), metavar="NAME:STRENGTH")
     ap.add_argument(
         "--missing",
@@ -388,6 +428,9 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     ap.add_argument("--out", type=Path, default=None, help="folder for the report")
     args = ap.parse_args(argv)
+    if args.replot:
+        print(f"figure: {replot(args.replot)}")
+        return
     shifts = [parse_shift(s) for s in args.shifts]
     runs = sorted(
         {Path(r) for g in args.runs for r in glob.glob(g) if (Path(r) / METRICS).is_file()}
