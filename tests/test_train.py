@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import lightning as L
@@ -433,12 +434,26 @@ def test_a_busy_machine_is_said_with_what_to_do(monkeypatch):
     import odmv.training.pace
 
     monkeypatch.setattr(odmv.training.pace.os, "cpu_count", lambda: 2)
-    monkeypatch.setattr(odmv.training.pace.os, "getloadavg", lambda: (1.2, 1.0, 1.0))
+    monkeypatch.setattr(odmv.training.pace, "busy_cores", lambda: 1.2)
     note = odmv.training.pace.busy_cores_note(2)
-    assert note.startswith("the machine is busy (load 1.2 on 2 cores): 2 torch threads")
+    assert note.startswith("the machine is busy (1.2 of 2 cores in use by other work): 2 torch")
     assert "threads=1" in note and "OMP_WAIT_POLICY=PASSIVE" in note
-    monkeypatch.setattr(odmv.training.pace.os, "getloadavg", lambda: (0.3, 1.0, 1.0))
+    monkeypatch.setattr(odmv.training.pace, "busy_cores", lambda: 0.3)
     assert odmv.training.pace.busy_cores_note(2) is None
+
+
+def test_busy_cores_sees_a_spinning_process_now_not_a_minute_ago():
+    """Measured from /proc/stat over a quarter second: a process spinning one core shows as
+    about one busy core at once, which the one-minute load average would not."""
+    from odmv.training.pace import busy_cores
+
+    spin = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        time.sleep(0.3)
+        assert 0.6 <= busy_cores() <= (os.cpu_count() or 1)
+    finally:
+        spin.kill()
+        spin.wait()
 
 
 def test_the_paper_preset_on_a_cpu_says_what_comes_next_before_it_starts(tmp_path, capsys):

@@ -107,26 +107,50 @@ class EpochLine(L.Callback):
         )
 
 
-def busy_cores_note(threads: int) -> str | None:
-    """A line when the machine's load leaves fewer idle cores than torch has threads: the
-    threads then wait on each other, and a step takes several times longer (measured on 2
-    cores beside one busy process: 826-964 ms a quickstart step with two threads, 397 ms with
-    one; idle 207 ms and 365 ms). A passive OpenMP wait changes no result and helps when busy
-    (2-core EPYC, 2026-12-06: 1.18 s a step against 1.60-1.84 s beside one busy process) but
-    costs 6-13 % idle (562-679 ms against 522-629 ms), so it is advice, not a default. None on an
-    idle enough machine or without a load average."""
+def busy_cores(sample_s: float = 0.25) -> float | None:
+    """How many cores other work keeps busy now: the share of non-idle time in /proc/stat over
+    ``sample_s`` (this process sleeps meanwhile), times the core count. The load average would
+    lag: just after ``make install`` it still counts the finished pip for a minute. Falls back
+    to the 1-minute load average where /proc/stat is absent; None without either."""
+
+    def ticks() -> tuple[int, int]:
+        with open("/proc/stat") as f:
+            v = [int(x) for x in f.readline().split()[1:9]]
+        return sum(v), v[3] + v[4]  # all; idle and iowait
+
+    cores = os.cpu_count() or 1
     try:
-        load = os.getloadavg()[0]
-    except OSError:
+        total0, idle0 = ticks()
+        time.sleep(sample_s)
+        total1, idle1 = ticks()
+    except (OSError, ValueError):
+        try:
+            return os.getloadavg()[0]
+        except OSError:
+            return None
+    spent = total1 - total0
+    return cores * (1 - (idle1 - idle0) / spent) if spent > 0 else 0.0
+
+
+def busy_cores_note(threads: int) -> str | None:
+    """A line when other work leaves fewer idle cores than torch has threads: the threads
+    then wait on each other, and a step takes several times longer (measured on 2 cores beside
+    one busy process: 826-964 ms a quickstart step with two threads, 397 ms with one; idle
+    207 ms and 365 ms). A passive OpenMP wait changes no result and helps when busy (2-core
+    EPYC, 2026-12-06: 1.18 s a step against 1.60-1.84 s beside one busy process) but costs
+    6-13 % idle (562-679 ms against 522-629 ms), so it is advice, not a default. None on an
+    idle enough machine or where the load cannot be read."""
+    busy = busy_cores()
+    if busy is None:
         return None
     cores = os.cpu_count() or 1
-    idle = cores - load
+    idle = cores - busy
     if idle >= threads - 0.5:
         return None
     return (
-        f"the machine is busy (load {load:.1f} on {cores} cores): {threads} torch threads will "
-        f"wait on each other and training runs several times slower; wait for the other jobs, "
-        "start it with OMP_WAIT_POLICY=PASSIVE in the environment (the same results, about 1.4x "
-        f"faster when busy), or train with threads={max(1, int(idle + 0.5))} (another run: "
-        "results depend on the thread count)"
+        f"the machine is busy ({busy:.1f} of {cores} cores in use by other work): {threads} "
+        "torch threads will wait on each other and training runs several times slower; wait "
+        "for the other jobs, start it with OMP_WAIT_POLICY=PASSIVE in the environment (the "
+        "same results, about 1.4x faster when busy), or train with "
+        f"threads={max(1, int(idle + 0.5))} (another run: results depend on the thread count)"
     )
