@@ -104,6 +104,9 @@ def test_a_report_page_has_the_tables_bars_with_seeds_and_provenance(tmp_path):
     assert len(p.scenes) == 3 and len(p.scenes[0].predictions) >= 9
     out = page_of(mini, tmp_path / "mini.html")
     assert out.stat().st_size < 15e6
+    for committed in (mini / "page.html", mini.parent / "robustness" / "page.html"):
+        assert committed.stat().st_size < 15e6  # the pages beside the committed reports
+        assert "Plotly.newPlot" in committed.read_text()
     text = out.read_text()
     assert "Table II: model comparison" in text and "<table>" in text
 
