@@ -17,7 +17,7 @@ import plotly.graph_objects as go
 
 from odmv.io.atomic import write_text
 from odmv.page import plots
-from odmv.page.sources import Page, Scene, read
+from odmv.page.sources import NO_TRUTH_BIT, SHADOWED_BIT, Page, Scene, read
 
 PAGE = "page.html"  # a folder's own page
 
@@ -46,7 +46,7 @@ function subsets(k) {
       const v = code[r * s.w + c];
       const lit = s.views.filter((_, i) => v & (1 << i));
       row.push((lit.length ? 'lit by ' + lit.join(', ') : 'lit by no projector') +
-               (v & 32 ? ', shadowed' : '') + (v & 64 ? ', no ground truth' : ''));
+               (v & SHADOWED ? ', shadowed' : '') + (v & NO_TRUTH ? ', no ground truth' : ''));
     }
     rows.push(row);
   }
@@ -231,6 +231,7 @@ def render(page: Page) -> str:
     data = (
         f"const FIGURES = {_json(figs.items)};\nconst SUBSETS = {_json(figs.subsets)};\n"
         f"const PROFILES = {_json(figs.profiles)};\n"
+        f"const SHADOWED = {SHADOWED_BIT}, NO_TRUTH = {NO_TRUTH_BIT};\n"
     )
     return (
         f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'

@@ -10,9 +10,9 @@ import plotly.graph_objects as go
 from plotly.colors import qualitative
 from plotly.subplots import make_subplots
 
-from odmv.page.sources import Scene
-from odmv.sim.shifts import KINDS, NOMINAL
+from odmv.page.sources import SHADOWED_BIT, Scene
 from odmv.study.results import Cell
+from odmv.study.robustness import ratio_curves, strength_unit
 from odmv.study.tables import TITLES
 from odmv.training.metrics import HEIGHT_BANDS_MM
 
@@ -77,7 +77,7 @@ def error_axis(scene: Scene) -> dict:
 def band_errors(scene: Scene) -> list[tuple[str, list[float]]]:
     """MAE (mm) per prediction: all pixels, each height band, shadowed pixels."""
     _, height = heights_mm(scene.truth_mm)
-    shadowed = (scene.subsets & 32) > 0 if scene.subsets is not None else None
+    shadowed = (scene.subsets & SHADOWED_BIT) > 0 if scene.subsets is not None else None
     out = []
     for label, pred in scene.predictions.items():
         err = np.abs(pred - scene.truth_mm)
@@ -350,25 +350,19 @@ def robustness_curves(rows: list[dict]) -> go.Figure:
     """MAE ratio to nominal against each shift's strength, one panel per shift, one colour and
     marker per model (a legend click hides a model in every panel)."""
     models = list(dict.fromkeys(r["model"] for r in rows))
-    kinds = list(dict.fromkeys(r["set"].split(":")[0] for r in rows if ":" in r["set"]))
+    curves = ratio_curves(rows)
+    kinds = list(curves)
     cols = 4
     n_rows = (len(kinds) + cols - 1) // cols
     fig = make_subplots(n_rows, cols, subplot_titles=kinds, vertical_spacing=0.1)
     for m, model in enumerate(models):
-        mine = [r for r in rows if r["model"] == model]
         for k, kind in enumerate(kinds):
-            points = [
-                (r["set"].split(":", 1)[1], float(r["ratio_to_nominal"]))
-                for r in mine if r["set"].startswith(kind + ":") and r["ratio_to_nominal"]
-            ]  # fmt: skip
-            if not points:
+            if model not in curves[kind]:
                 continue
-            nominal = NOMINAL.get(kind)
-            if isinstance(nominal, (int, float)):
-                points = sorted([(float(v), q) for v, q in points] + [(float(nominal), 1.0)])
+            xs, ratios = curves[kind][model]
             fig.add_trace(
                 go.Scatter(
-                    x=[p for p, _ in points], y=[q for _, q in points], name=model,
+                    x=xs, y=ratios, name=model,
                     legendgroup=model, showlegend=k == 0, mode="lines+markers",
                     line={"color": style(m)["color"]},
                     marker={"symbol": style(m)["symbol"], "size": 8},
@@ -377,9 +371,8 @@ def robustness_curves(rows: list[dict]) -> go.Figure:
                 k // cols + 1, k % cols + 1,
             )  # fmt: skip
     for k, kind in enumerate(kinds):
-        unit = KINDS[kind].unit if kind in KINDS else "view"
-        fig.update_xaxes(title={"text": unit, "font": {"size": 10}}, row=k // cols + 1,
-                         col=k % cols + 1)  # fmt: skip
+        fig.update_xaxes(title={"text": strength_unit(kind), "font": {"size": 10}},
+                         row=k // cols + 1, col=k % cols + 1)  # fmt: skip
     fig.add_hline(y=1.0, line={"color": "grey", "width": 1, "dash": "dot"})
     fig.update_layout(
         **LAYOUT, height=300 * n_rows + 160, title="MAE on the shifted twin / nominal MAE",

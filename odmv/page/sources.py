@@ -99,22 +99,12 @@ def scene_inputs(dataset: Path, sid: str, shape: tuple[int, int]) -> Scene | Non
     )  # fmt: skip
 
 
-def _kept(run: Run) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """A run's kept test predictions: scene -> (predicted, true) depth in mm."""
-    path = run.folder / PREDICTIONS
-    if not path.is_file():
-        return {}
-    with np.load(path) as z:
-        return {
-            str(sid): (p, g)
-            for sid, p, g in zip(z["scene_id"], z["pred_mm"], z["depth_mm"], strict=True)
-        }
-
-
 def _scenes(labelled: list[tuple[str, Run]], dataset: Path | None) -> tuple[list[Scene], list[str]]:
     """The scenes every labelled run kept predictions of (at most SCENES, in the first run's
     order), each with every run's prediction; and notes on what could not be shown."""
-    kept = [(label, _kept(run)) for label, run in labelled]
+    from odmv.study.figures import kept_predictions
+
+    kept = [(label, kept_predictions(run) or {}) for label, run in labelled]
     kept = [(label, k) for label, k in kept if k]
     if not kept:
         return [], ["no run here kept test predictions (test_predictions.npz): no scenes shown"]

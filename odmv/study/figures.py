@@ -44,13 +44,15 @@ def bar_chart(path: Path, name: str, cells: list[Cell]) -> None:
     plt.close(fig)
 
 
-def _predictions(run: Run) -> dict[str, np.ndarray] | None:
+def kept_predictions(run: Run) -> dict[str, tuple[np.ndarray, np.ndarray]] | None:
+    """A run's kept test predictions: scene -> (predicted, true) depth in mm; None without
+    its file."""
     path = run.folder / PREDICTIONS
     if not path.is_file():
         return None
     with np.load(path) as z:
         return {
-            sid: (p, g)
+            str(sid): (p, g)
             for sid, p, g in zip(z["scene_id"], z["pred_mm"], z["depth_mm"], strict=True)
         }
 
@@ -86,7 +88,7 @@ def comparison_figures(
     preds = []
     for c in cells:
         runs = c.by_seed()
-        p = next((p for p in map(_predictions, runs) if p), None)
+        p = next((p for p in map(kept_predictions, runs) if p), None)
         if p:
             preds.append((c.row.label, p))
     if not preds:

@@ -350,39 +350,55 @@ STYLES = [
 ]
 
 
+def ratio_curves(csv_rows: list[dict]) -> dict[str, dict[str, tuple[list, list[float]]]]:
+    """``robustness.csv``'s rows as curves: shift -> model -> (strengths, MAE ratios to
+    nominal). Numeric strengths are sorted, with the nominal strength at ratio 1 added; view
+    names (dead_view, missing) keep their order. Non-finite ratios are left out."""
+    curves: dict[str, dict[str, tuple[list, list[float]]]] = {}
+    for r in csv_rows:
+        name, _, strength = r["set"].partition(":")
+        ratio = float(r["ratio_to_nominal"] or "nan")
+        if strength and np.isfinite(ratio):
+            curves.setdefault(name, {}).setdefault(r["model"], []).append((strength, ratio))
+    out = {}
+    for name, models in curves.items():
+        nominal = NOMINAL.get(name)
+        out[name] = {}
+        for model, points in models.items():
+            if isinstance(nominal, (int, float)):
+                points = sorted([(float(v), q) for v, q in points] + [(float(nominal), 1.0)])
+            out[name][model] = ([v for v, _ in points], [q for _, q in points])
+    return out
+
+
+def strength_unit(name: str) -> str:
+    """The unit of a shift's strength (``missing``: the view withheld)."""
+    return KINDS[name].unit if name in KINDS else "view"
+
+
 def figure(csv_rows: list[dict], path: Path) -> None:
     """One panel per shift: each model's MAE ratio to its nominal MAE against the strength
     (``robustness.csv``'s rows), one colour and marker per model, the legend below the panels."""
     models = list(dict.fromkeys(r["model"] for r in csv_rows))
-    names = list(dict.fromkeys(r["set"].split(":")[0] for r in csv_rows if ":" in r["set"]))
+    curves = ratio_curves(csv_rows)
+    names = list(curves)
     cols = min(4, len(names)) or 1
     n_rows = (len(names) + cols - 1) // cols
     fig, axes = plt.subplots(n_rows, cols, figsize=(3.4 * cols, 2.7 * n_rows + 1.2),
                              squeeze=False)  # fmt: skip
     for ax, name in zip(axes.flat, names, strict=False):
         for m, model in enumerate(models):
-            points = [
-                (r["set"].split(":", 1)[1], float(r["ratio_to_nominal"]))
-                for r in csv_rows
-                if r["model"] == model
-                and r["set"].startswith(name + ":")
-                and np.isfinite(float(r["ratio_to_nominal"] or "nan"))
-            ]
-            if not points:
+            if model not in curves[name]:
                 continue
-            nominal = NOMINAL.get(name)
-            if isinstance(nominal, (int, float)):
-                points = sorted([(float(v), q) for v, q in points] + [(float(nominal), 1.0)])
-                xs = [v for v, _ in points]
-            else:  # views: categories
-                xs = list(range(len(points)))
-                ax.set_xticks(xs, [v for v, _ in points])
+            xs, ratios = curves[name][model]
+            if isinstance(xs[0], str):  # views: categories
+                ax.set_xticks(range(len(xs)), xs)
+                xs = list(range(len(xs)))
             colour, marker = STYLES[m % len(STYLES)]
-            ax.plot(xs, [q for _, q in points], color=colour, marker=marker, ms=5, label=model)
+            ax.plot(xs, ratios, color=colour, marker=marker, ms=5, label=model)
         ax.axhline(1.0, color="grey", lw=0.5)
-        unit = KINDS[name].unit if name in KINDS else "view"
         ax.set_title(name, fontsize=9)
-        ax.set_xlabel(unit, fontsize=8)
+        ax.set_xlabel(strength_unit(name), fontsize=8)
         ax.set_ylabel("MAE / nominal", fontsize=8)
     for ax in list(axes.flat)[len(names) :]:
         ax.axis("off")
