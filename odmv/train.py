@@ -33,8 +33,10 @@ from odmv.cli import (
 )
 from odmv.io.atomic import write_json, write_text
 from odmv.io.runfolder import CONFIG, METRICS, portable_record
+from odmv.training.adaptation import check_calibration, view_offsets
 from odmv.training.checkpoint import (
     AtomicCheckpointIO,
+    best_checkpoint,
     check_fits,
     check_weights,
     initial_weights,
@@ -95,6 +97,7 @@ def build(cfg: DictConfig):
         data_cfg=data_cfg,
         run_info=run_summary(cfg),
         compile=cfg.get("compile"),
+        adapt=adapt_settings(cfg),
     )
     loggers = [hydra.utils.instantiate(c) for c in (cfg.get("logger") or {}).values()]
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()]
@@ -108,6 +111,13 @@ def build(cfg: DictConfig):
         cfg.trainer, logger=loggers or False, callbacks=callbacks, plugins=[AtomicCheckpointIO()]
     )
     return dm, module, trainer
+
+
+def adapt_settings(cfg: DictConfig) -> dict | None:
+    """``adapt=true``: the adaptation settings and the checkpoint it starts from (``base``)."""
+    if not cfg.get("adapt"):
+        return None
+    return OmegaConf.to_container(cfg.adaptation, resolve=True) | {"base": str(cfg.init_from)}
 
 
 def run_folder_of(ckpt_path: str | Path) -> Path | None:
@@ -125,17 +135,72 @@ def resumed_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
     if not saved.is_file():
         raise ValueError(f"resume: {run}: not a run folder (no .hydra/config.yaml)")
     out = _moved_targets(OmegaConf.load(saved))
+    _override(out, cfg, overrides, ("resume", "ckpt_path"), f"the run in {run}", "resume")
+    out.ckpt_path = str(run / "checkpoints" / "last.ckpt")
+    return out
+
+
+def _override(out: DictConfig, cfg: DictConfig, overrides, skip, what: str, app: str) -> None:
+    """Apply the command line's ``key=value`` overrides (but ``skip``) to a saved config."""
     for override in overrides:
         key, _, value = override.partition("=")
-        if key in ("resume", "ckpt_path"):
+        if key.lstrip("+~") in skip or "=" not in override:
             continue
         if OmegaConf.select(out, key, default=_MISSING) is _MISSING:
             raise ValueError(
-                f"resume: {key} is not a setting of the run in {run} (a resumed run keeps its "
-                "config groups)"
+                f"{app}: {key} is not a setting of {what} (it keeps that run's config groups)"
             )
         OmegaConf.update(out, key, cfg_value(cfg, key, value), merge=False)
-    out.ckpt_path = str(run / "checkpoints" / "last.ckpt")
+
+
+#: what ``adapt=true`` takes from the command line rather than from the run it adapts
+_ADAPT_OWN = ("adapt", "init_from", "root", "data", "seed", "threads", "test")
+
+
+def adapted_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
+    """``adapt=true init_from=RUN root=DATASET``: RUN's own config (its net, input and data
+    settings, so the adapted net reads images as RUN's did) pointed at DATASET's fringes with
+    no labels read, starting from RUN's best checkpoint, trained by ``adaptation``'s settings
+    with the best epoch chosen by the held-out scenes' label-free loss; other ``key=value``
+    overrides apply on top. ``adaptation.supervised=true``: the same fine-tune with DATASET's
+    depth and RUN's own loss instead, the best epoch by val/mae_mm (the ceiling)."""
+    if not cfg.get("init_from"):
+        raise ValueError("adapt: init_from=RUN names the trained run to adapt")
+    source = Path(cfg.init_from).resolve()
+    run = source if source.is_dir() else run_folder_of(source)
+    saved = run / ".hydra" / "config.yaml" if run is not None else None
+    if saved is None or not saved.is_file():
+        raise ValueError(f"init_from: {source}: not a run folder (no .hydra/config.yaml)")
+    ckpt = best_checkpoint(source)[0] if source.is_dir() else source
+    root = cfg.get("root")
+    if not root:
+        raise ValueError("adapt: root=DATASET names the fringe images to adapt to")
+    a = cfg.adaptation
+    out = _moved_targets(OmegaConf.load(saved))
+    # the dataset: read, never rendered; without its ground truth (its files may be absent)
+    # unless this is the supervised fine-tune that adaptation is measured against
+    data = {"root": str(Path(root).resolve()), "render": False, "labels": bool(a.supervised)}
+    data |= {"calibration": True, "val_from_train": a.val_share}  # the loss needs the maps
+    OmegaConf.update(out, "data", data, merge=True)
+    out.root = data["root"]
+    out.adapt, out.adaptation = not a.supervised, OmegaConf.to_container(a, resolve=True)
+    out.init_from, out.ckpt_path, out.resume = str(ckpt), None, None
+    out.paths = OmegaConf.to_container(cfg.paths, resolve=True)
+    out.seed, out.test = cfg.seed, cfg.test
+    out.threads = cfg.get("threads") if cfg.get("threads") is not None else out.get("threads")
+    out.trainer.max_epochs, out.optimizer.lr = a.epochs, a.lr
+    if "T_0" in (out.get("scheduler") or {}):
+        out.scheduler.T_0 = a.epochs  # one cosine over the adaptation
+    monitor = "val/mae_mm" if a.supervised else "val/loss"
+    out.callbacks.checkpoint.monitor = monitor
+    out.callbacks.early_stop = {
+        "_target_": "lightning.pytorch.callbacks.EarlyStopping",
+        "monitor": monitor,
+        "mode": "min",
+        "patience": a.patience,
+    }
+    out.optimized_metric = monitor
+    _override(out, cfg, overrides, _ADAPT_OWN, f"the run in {run}", "adapt")
     return out
 
 
@@ -196,6 +261,9 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
         check_weights(cfg.ckpt_path, ckpt["state_dict"], module.state_dict())
     elif cfg.get("init_from"):  # a resumed fine-tune continues from its own checkpoint instead
         module.load_state_dict(initial_weights(cfg.init_from, module.state_dict()))
+    calibration = {}
+    if cfg.get("adapt") and ckpt is None:
+        calibration = _checked_calibration(cfg, dm, module)
     try:
         trainer.fit(module, datamodule=dm, ckpt_path=cfg.ckpt_path, weights_only=True)
     except SIGTERMException:  # Lightning's is a SystemExit without a status: exit 0
@@ -214,14 +282,18 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
     if cfg.test:
         best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
         module.test_dir = out_dir
-        results = trainer.test(
-            module,
-            datamodule=dm,
-            ckpt_path=best or None,
-            weights_only=True,
-            verbose=cfg.get("test_table", True),  # the demo prints its evaluation's instead
-        )
-        metrics.update({k: float(v) for k, v in results[0].items()})
+        fine_tune = cfg.get("adapt") or (cfg.get("adaptation") or {}).get("supervised")
+        if dm.splits.get("test") or not fine_tune:  # a user's scenes may all adapt
+            results = trainer.test(
+                module,
+                datamodule=dm,
+                ckpt_path=best or None,
+                weights_only=True,
+                verbose=cfg.get("test_table", True),  # the demo prints its evaluation's instead
+            )
+            metrics.update({k: float(v) for k, v in results[0].items()})
+        if fine_tune:
+            metrics.update(adapted_from=str(cfg.init_from), **calibration)
         overrides = task_overrides()
         metrics.update(
             best_checkpoint=best,
@@ -248,6 +320,25 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
                 {k: v for k, v in record.items() if not isinstance(v, list)},
             )
     return metrics
+
+
+def _checked_calibration(cfg: DictConfig, dm, module: FPPModule) -> dict:
+    """Before adapting: each view's mean asked-for depth change of the starting net on the
+    held-out scenes, refused (StaleCalibrationError) where the views disagree by more than
+    ``adaptation.stale_mm``; returns them for the run's record."""
+    dm.prepare_data()
+    dm.setup("fit")
+    module.norm = dm.norm  # as the trainer's setup will set it
+    offsets = view_offsets(module, dm.val_dataloader(), list(dm.spec.views))
+    spread = None
+    if cfg.adaptation.check_calibration:
+        spread = check_calibration(offsets, cfg.adaptation.stale_mm, dm.root)
+    shown = ", ".join(f"{v} {x:+.3f}" for v, x in offsets.items())
+    rank_zero_print(
+        f"calibration check: the views ask for {shown} mm"
+        + ("" if spread is None else f" (spread {spread:.3f} mm <= {cfg.adaptation.stale_mm})")
+    )
+    return {"view_offsets_mm": offsets, "view_spread_mm": spread}
 
 
 def _interrupted(out_dir: Path, trainer: L.Trainer, sig: signal.Signals) -> Interrupted:
@@ -293,7 +384,12 @@ def main(cfg: DictConfig) -> Metrics | JobFailed:
 
     def body() -> tuple[DictConfig, dict]:
         check_launch(cfg)
-        run_cfg = resumed_config(cfg, task_overrides()) if cfg.get("resume") else cfg
+        if cfg.get("resume"):
+            run_cfg = resumed_config(cfg, task_overrides())
+        elif cfg.get("adapt"):
+            run_cfg = adapted_config(cfg, task_overrides())
+        else:
+            run_cfg = cfg
         folders.append(Path(run_cfg.paths.output_dir))
         adopt_hydra_files(hydra_dir, folders[-1])
         return run_cfg, train(run_cfg)

@@ -89,6 +89,20 @@ def offset_from_depth(depth_mm: torch.Tensor, maps: torch.Tensor) -> torch.Tenso
     return rise / (maps[:, :, 3] + rise * maps[:, :, 4])
 
 
+def coord_from_depth(depth_mm: torch.Tensor, maps: torch.Tensor) -> torch.Tensor:
+    """Depth (B x 1 x H x W, mm) -> the projector coordinate each view's projector casts on
+    the surface point every pixel sees (B x S x H x W, projector px along its phase axis): the
+    simulator's projection of the point into the projector, differentiable in the depth."""
+    return maps[:, :, 0] + offset_from_depth(depth_mm, maps)
+
+
+def phase_from_depth(depth_mm: torch.Tensor, maps: torch.Tensor) -> torch.Tensor:
+    """Depth (B x 1 x H x W, mm) -> the phase (rad, unwrapped) of each view's input fringe
+    image at every pixel, 2 pi (u / P + n / N): what the image would carry if the depth were
+    right."""
+    return 2 * torch.pi * (coord_from_depth(depth_mm, maps) / maps[:, :, 1] + maps[:, :, 2])
+
+
 def offset_from_coord(coord_px: torch.Tensor, maps: torch.Tensor) -> torch.Tensor:
     """Projector coordinates (B x S x H x W, px; NaN where unlit) -> offsets from the reference
     plane (px)."""

@@ -32,6 +32,8 @@ _ARRAYS = {
 
 
 def _names(spec: SampleSpec) -> list[str]:
+    if not spec.labels:
+        return ["fringes"]
     wanted = {
         "phase_target": spec.with_phase or spec.calibration,
         "projector_coord": spec.calibration,

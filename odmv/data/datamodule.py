@@ -68,6 +68,9 @@ class FPPDataModule(L.LightningDataModule):
     triangulation maps (odmv.classical.geometry), each view's projector coordinates and phase
     targets
     (needs a dataset with a rig). None: none of them.
+    ``labels``: False reads the fringes alone, never a scene's depth, lit masks or projector
+    coordinates (their files may be absent): a user's rig for label-free adaptation
+    (odmv.training.consistency); the samples' depth is NaN and every metric subset empty.
     """
 
     def __init__(
@@ -98,6 +101,7 @@ class FPPDataModule(L.LightningDataModule):
         randomize: str | None = None,
         view_dropout: float | None = None,
         calibration: bool | None = None,
+        labels: bool = True,
         progress: bool = True,
     ):
         super().__init__()
@@ -128,6 +132,7 @@ class FPPDataModule(L.LightningDataModule):
         self.randomize = randomize
         self.view_dropout = view_dropout
         self.calibration = bool(calibration)
+        self.labels = bool(labels)
         self.progress = progress
         self.manifest: Manifest | None = None
         self.spec: SampleSpec | None = None
@@ -197,6 +202,7 @@ class FPPDataModule(L.LightningDataModule):
             self.with_phase,
             self.reference,
             self.calibration,
+            self.labels,
         )
         if self.spec.height_px > m.height_px or self.spec.width_px > m.width_px:
             rank_zero_print(

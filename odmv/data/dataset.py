@@ -61,6 +61,8 @@ class SampleSpec:
     n_steps: int = 1  # phase steps of its sequence
     reference: str | None = None  # the reference-plane phase as input: phase | demod
     calibration: bool = False  # also the rig's triangulation maps and the projector coordinates
+    labels: bool = True  # the ground truth (depth, lit masks, projector coordinates); False:
+    # the fringes alone, as a user's rig gives them (label-free adaptation never reads any)
 
     def key(self) -> dict:
         return asdict(self)
@@ -76,6 +78,7 @@ def check_spec(
     with_phase: bool = False,
     reference=None,
     calibration: bool = False,
+    labels: bool = True,
 ) -> SampleSpec:
     """Resolve and check sample settings against a manifest (one-line DataError on a problem)."""
     try:
@@ -107,6 +110,8 @@ def check_spec(
         raise DataError(str(e)) from None
     if with_stacks and m.images != "full":
         raise DataError(f"data.with_stacks: {m.root} holds no full sequences (images=training)")
+    if not labels and (with_stacks or with_phase):
+        raise DataError("data.labels: false reads no ground truth, so no stacks or phase targets")
     if calibration and m.rig is None:
         raise DataError(
             f"head=phase: {m.root} has no rig calibration, so phase cannot become depth; "
@@ -124,6 +129,7 @@ def check_spec(
         m.fringe.steps,
         reference,
         calibration,
+        labels,
     )
 
 
@@ -202,9 +208,10 @@ def load_depth(m: Manifest, sid: str, spec: SampleSpec) -> np.ndarray:
 
 
 def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]:
-    """Raw arrays of one scene at ``spec``'s size: fringes (S,H,W) linear intensity,
-    depth_mm (1,H,W), lit (S,H,W) bool, the subsets shadowed, unlit, first_unlit and
-    first_shadowed (1,H,W) bool over every projector of the dataset; with stacks also
+    """Raw arrays of one scene at ``spec``'s size: fringes (S,H,W) linear intensity and, unless
+    ``spec.labels`` is false (then nothing else is read), depth_mm (1,H,W), lit (S,H,W) bool,
+    the subsets shadowed, unlit, first_unlit and first_shadowed (1,H,W) bool over every
+    projector of the dataset; with stacks also
     fringe_stack (S,K,H,W); with stacks or calibration projector_coord (S,H,W, NaN where
     unlit); with phase (or calibration) also phase_target (2S,H,W: sin, cos of each view's
     input-image phase, 0 where unlit).
@@ -231,6 +238,9 @@ def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]
 
     fd = d / FRINGE_DIR
     fringes = np.stack([fringe(fd / fringe_name(v, spec.frequency, spec.step)) for v in spec.views])
+    h, w = spec.height_px, spec.width_px
+    if not spec.labels:
+        return {"fringes": _resize(fringes, h, w, "area")}
     depth = _full_depth(m, sid)
     # every projector's lit mask: the metric subsets never depend on the model's views
     lit_all = _read(d / LIT_FILE, list(m.views))
@@ -246,7 +256,6 @@ def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]
         footprint = footprint_from_depth(m.rig, depth, m.views)
     subsets = subset_masks(lit_every, footprint)
     lit = lit_every[[m.views.index(v) for v in spec.views]].astype(np.float32)
-    h, w = spec.height_px, spec.width_px
     out = {
         "fringes": _resize(fringes, h, w, "area"),
         "depth_mm": _resize(depth[None], h, w, "nearest-exact"),
@@ -287,9 +296,10 @@ def fingerprint(m: Manifest, ids: list[str], spec: SampleSpec) -> str:
     for sid in ids:
         d = m.scene_dir(sid)
         files = [d / FRINGE_DIR / fringe_name(v, spec.frequency, spec.step) for v in spec.views]
-        coord = spec.with_phase or spec.calibration
-        files += [d / DEPTH_FILE, d / LIT_FILE] + ([d / PROJ_COORD_FILE] if coord else [])
-        files += [d / FOOTPRINT_FILE] if (d / FOOTPRINT_FILE).is_file() else []
+        if spec.labels:
+            coord = spec.with_phase or spec.calibration
+            files += [d / DEPTH_FILE, d / LIT_FILE] + ([d / PROJ_COORD_FILE] if coord else [])
+            files += [d / FOOTPRINT_FILE] if (d / FOOTPRINT_FILE).is_file() else []
         for p in files:
             try:
                 st = p.stat()
@@ -331,7 +341,8 @@ class FringeDataset(torch.utils.data.Dataset):
         return len(self.ids)
 
     def __getitem__(self, i: int) -> dict:
-        """fringes (S,H,W) in [-1,1]; depth (1,H,W) network units; depth_mm (1,H,W); lit (S,H,W)
+        """fringes (S,H,W) in [-1,1]; depth (1,H,W) network units; depth_mm (1,H,W; NaN without
+        labels); lit (S,H,W)
         and valid (1,H,W) as 0/1 floats; the metric subsets shadowed, unlit, first_unlit and
         first_shadowed (1,H,W, 0/1, see odmv.data.subsets); scene_id and family; with stacks also
         fringe_stack (S,K,H,W) in [-1,1]; with stacks or calibration projector_coord (S,H,W) in
@@ -341,6 +352,13 @@ class FringeDataset(torch.utils.data.Dataset):
             raw = self.cache.get(i)
         else:
             raw = load_scene(self.manifest, self.ids[i], self.spec)
+        if not self.spec.labels:  # no truth: NaN depth, nothing lit, every subset empty
+            shape = raw["fringes"].shape[1:]
+            raw = raw | {
+                "depth_mm": np.full((1, *shape), np.nan, np.float32),
+                "lit": np.zeros(raw["fringes"].shape, np.float32),
+                **{k: np.zeros((1, *shape), np.float32) for k in MASKS},
+            }
         depth_mm = torch.from_numpy(np.array(raw["depth_mm"], np.float32))
         sample = {
             "fringes": self.norm.fringes(torch.from_numpy(np.array(raw["fringes"], np.float32))),
@@ -358,11 +376,12 @@ class FringeDataset(torch.utils.data.Dataset):
             sample["available"] = torch.ones(len(self.spec.views))
             base = sample.get("inputs", sample["fringes"])
             sample["inputs"] = with_availability(base, sample["available"])
-        if self.spec.with_phase or self.spec.calibration:
+        labelled = self.spec.labels
+        if labelled and (self.spec.with_phase or self.spec.calibration):
             sample["phase_target"] = torch.from_numpy(np.array(raw["phase_target"], np.float32))
         if self.spec.with_stacks:
             sample["fringe_stack"] = self.norm.fringes(torch.from_numpy(raw["fringe_stack"]))
-        if self.spec.with_stacks or self.spec.calibration:
+        if labelled and (self.spec.with_stacks or self.spec.calibration):
             sample["projector_coord"] = torch.from_numpy(np.array(raw["projector_coord"]))
         if self.calibration is not None:
             sample["calibration"] = self.calibration

@@ -41,13 +41,19 @@ class HeldoutError(ValueError):
 
 
 def twin_settings(
-    source: Path, name: str, scenes: int, seed: int, images: str, shift: Shift | None = None
+    source: Path,
+    name: str,
+    scenes: int,
+    seed: int,
+    images: str,
+    shift: Shift | None = None,
+    split: str = "test",
 ) -> SimSettings:
-    """The settings of a test-only twin of dataset ``source``, beside it: its rig, fringes,
-    renderer and scene mix, ``scenes`` scenes drawn from ``seed``, under ``shift`` (None: the
-    nominal twin), in folder ``name-KEY``. KEY hashes everything that sets the twin's pixels,
-    so datasets that differ only in their training scenes (randomized or shifted) share one
-    twin instead of rendering it again."""
+    """The settings of a twin of dataset ``source``, beside it: its rig, fringes, renderer and
+    scene mix, ``scenes`` scenes drawn from ``seed``, all of them in ``split``, under ``shift``
+    (None: the nominal twin), in folder ``name-KEY``. KEY hashes everything that sets the
+    twin's pixels, so datasets that differ only in their training scenes (randomized or
+    shifted) share one twin instead of rendering it again."""
     try:
         m = json.loads((source / MANIFEST).read_text())
     except (OSError, json.JSONDecodeError) as e:
@@ -67,7 +73,7 @@ def twin_settings(
         "scenes": scenes,
         "seed": seed,
         "images": images,
-        "splits": {"train": 0, "val": 0, "test": 1},
+        "splits": {k: int(k == split) for k in ("train", "val", "test")},
         **({"shift": shift.to_dict()} if shift is not None and not shift.nominal else {}),
     }
     out = source.parent / f"{name}-{settings_hash(spec | {'rig': m['rig']})}"
@@ -75,10 +81,16 @@ def twin_settings(
 
 
 def twin_dataset(
-    source: Path, name: str, scenes: int, seed: int, images: str, shift: Shift | None = None
+    source: Path,
+    name: str,
+    scenes: int,
+    seed: int,
+    images: str,
+    shift: Shift | None = None,
+    split: str = "test",
 ) -> Path:
     """Render (or finish) the twin of ``twin_settings``; returns its folder."""
-    settings = twin_settings(source, name, scenes, seed, images, shift)
+    settings = twin_settings(source, name, scenes, seed, images, shift, split)
     out = Path(settings.out)
     m = json.loads((source / MANIFEST).read_text())
     if not settings.complete():

@@ -26,6 +26,7 @@ from odmv.config import compose_train
 from odmv.io.atomic import write_json, write_text
 from odmv.io.runfolder import CONFIG, HELDOUT, METRICS, PREDICTIONS, ROBUSTNESS, SCENES_CSV
 from odmv.sim.shifts import parse_shift
+from odmv.study.adapt import run_adaptation
 from odmv.study.figures import FIGURE_SCENES, pick_scenes
 from odmv.study.heldout import HeldoutError, score_heldout
 from odmv.study.report import write_report
@@ -159,6 +160,11 @@ def _run_key(cfg: DictConfig) -> str:
             named.pop("_partial_", None)
             if named.get("interval") == "epoch":
                 named.pop("interval")
+    if not d.get("adapt"):  # label-free adaptation off: its settings are never read
+        d.pop("adapt", None)
+        d.pop("adaptation", None)
+    if d["data"].get("labels") is True:  # the ground truth read, as before it could be not
+        d["data"].pop("labels")
     for setting in QUIET:  # how a run reports is not what it is
         group, _, key = setting.partition("=")[0].rpartition(".")
         d[group].pop(key, None)
@@ -391,6 +397,9 @@ def run_study(cfg: DictConfig, train: list[str]) -> Path:
             f"(shadowed {m['test/mae_mm_shadowed']:.4f} mm)",
             flush=True,
         )
+    if cfg.get("adapt"):  # label-free adaptation of finished runs (odmv.study.adapt)
+        command = f"python -m odmv.reproduce protocol={protocol} study=adapt"
+        run_adaptation(cfg.adapt, runs_dir, out, threads, train, command)
     rows = dict(cfg.rows or {})
     if rows:  # a study's own rows: one table of them, each row's seeds together
         groups = [(label, [j.result() for j in jobs if j.rows & {label}]) for label in rows]

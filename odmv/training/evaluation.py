@@ -28,9 +28,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 
 def read_only(data: dict, **changes) -> dict:
-    """A saved data config (a checkpoint's) that reads its dataset and never renders one, with
-    ``changes`` on top."""
-    return {**data, "progress": False, "render": False, "simulate": None, **changes}
+    """A saved data config (a checkpoint's) that reads its dataset with its ground truth (an
+    adapted net's was read without) and never renders one, with ``changes`` on top."""
+    quiet = {"progress": False, "render": False, "simulate": None, "labels": True}
+    quiet["val_from_train"] = None  # a split of the training scenes is no test's business
+    return {**data, **quiet, **changes}
 
 
 def constant_predictor_errors(dm, value_mm: float) -> dict[str, float]:
@@ -46,8 +48,9 @@ def constant_predictor_errors(dm, value_mm: float) -> dict[str, float]:
 def constant_depth_mm(saved: dict, dm) -> float | None:
     """The constant predictor's depth (mm): the mean training depth of the dataset the net was
     trained on (the checkpoint's), so a test on another dataset is scored against the same
-    constant; else the tested dataset's own training split; None where neither is at hand."""
-    root = saved.get("root")
+    constant; else (or for an adapted net, whose dataset has no depth) the tested dataset's
+    own training split; None where neither is at hand."""
+    root = saved.get("root") if saved.get("labels", True) else None
     if (
         root
         and Path(root).resolve() != Path(dm.root).resolve()

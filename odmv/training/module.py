@@ -28,6 +28,7 @@ from odmv.io.runfolder import PREDICTIONS, SCENES_CSV
 from odmv.models.blocks import split_availability
 from odmv.models.phase import fuse, has_phase_head
 from odmv.training.checkpoint import CheckpointError, check_weights, read_checkpoint
+from odmv.training.consistency import ConsistencySettings, consistency_loss
 from odmv.training.losses import LossWeights, composite_loss
 from odmv.training.metrics import (
     SUBSETS,
@@ -99,6 +100,7 @@ class FPPModule(L.LightningModule):
         input_spec: dict | None = None,
         run_info: dict | None = None,
         compile: str | None = None,
+        adapt: dict | None = None,
     ):
         super().__init__()
         # logged by on_fit_start once the data has resolved the views and normalization
@@ -112,6 +114,11 @@ class FPPModule(L.LightningModule):
         )
         self.norm = Normalization(**norm) if norm else None
         self.weights = LossWeights(**(loss or {}))
+        # label-free adaptation (adapt=true): the consistency loss and its trust region around
+        # the net it started from (``base``: that net's checkpoint), instead of the composite
+        # loss; there is no ground truth, so no metric is computed
+        self.adapt = ConsistencySettings.of(adapt) if adapt else None
+        object.__setattr__(self, "_base", None)  # that net, frozen, off the module tree
         self.metrics = torch.nn.ModuleDict(
             {f"{stage}_{subset}": DepthErrors() for stage in ("val", "test") for subset in SUBSETS}
         )
@@ -152,6 +159,34 @@ class FPPModule(L.LightningModule):
                 calibration = sample.get("calibration")
                 self.example_input_array = x if calibration is None else (x, calibration)
 
+    def _start_net(self) -> FPPModule | None:
+        """The frozen net adaptation started from (loaded at first use)."""
+        base = (self.hparams.adapt or {}).get("base")
+        if self._base is None and base and self.adapt.anchor:
+            net = load_module(base).eval().requires_grad_(False)
+            object.__setattr__(self, "_base", net)
+        if self._base is not None:
+            self._base.to(self.device)
+        return self._base
+
+    def adapt_terms(self, batch: dict, out: dict) -> dict[str, torch.Tensor]:
+        """Label-free adaptation's loss terms: ``consistency`` (odmv.training.consistency),
+        ``phase_rad`` (its weighted RMS phase error), ``change_mm`` (the mean absolute change
+        from the starting net) and their sum ``loss``, consistency + anchor x change."""
+        depth_mm = self.depth_mm(out)
+        linear = (batch["fringes"].float() + 1) / 2 * self.norm.intensity_max
+        fit = consistency_loss(
+            depth_mm, linear, batch["calibration"], self.adapt, batch.get("available")
+        )
+        terms = {"consistency": fit["loss"], "phase_rad": fit["phase_rad"], "loss": fit["loss"]}
+        start = self._start_net()
+        if start is not None:
+            with torch.no_grad():
+                start_mm = start.depth_mm(start.run(batch))
+            terms["change_mm"] = (depth_mm - start_mm).abs().mean()
+            terms["loss"] = terms["loss"] + self.adapt.anchor * terms["change_mm"]
+        return terms
+
     def forward(self, inputs: torch.Tensor, calibration: torch.Tensor | None = None) -> dict:
         """``inputs``: the net's input, i.e. a batch's ``inputs`` (fringes plus the reference
         phase) when the data has them, else its normalized ``fringes``. ``calibration``: the
@@ -176,7 +211,9 @@ class FPPModule(L.LightningModule):
     # ---------------------------------------------------------------- steps
     def training_step(self, batch, _):
         out = self.run(batch)
-        terms = composite_loss(out, batch, self.weights)
+        terms = (
+            self.adapt_terms(batch, out) if self.adapt else composite_loss(out, batch, self.weights)
+        )
         if not torch.isfinite(terms["loss"]):  # stop: every later step and metric would be NaN
             bad = [k for k, v in terms.items() if not torch.isfinite(v)]
             raise NonFiniteLossError(
@@ -208,14 +245,17 @@ class FPPModule(L.LightningModule):
     def _evaluate(self, batch, stage: str) -> tuple[dict, torch.Tensor, dict]:
         """Loss and metrics of one batch; returns the output, the depth in mm and the masks."""
         out = self.run(batch)
-        terms = composite_loss(out, batch, self.weights)
+        bs = batch["fringes"].shape[0]
         pred_mm = self.depth_mm(out)
         masks = subset_masks(batch)
+        if self.adapt:  # no ground truth: the label-free terms are the measure
+            for k, v in self.adapt_terms(batch, out).items():
+                self.log(f"{stage}/{k}", v, batch_size=bs, sync_dist=True)
+            return out, pred_mm, masks
+        terms = composite_loss(out, batch, self.weights)
         for subset, mask in masks.items():
             self.metrics[f"{stage}_{subset}"].update(pred_mm, batch["depth_mm"], mask)
-        self.log(
-            f"{stage}/loss", terms["loss"], batch_size=batch["fringes"].shape[0], sync_dist=True
-        )
+        self.log(f"{stage}/loss", terms["loss"], batch_size=bs, sync_dist=True)
         return out, pred_mm, masks
 
     def validation_step(self, batch, batch_idx):
@@ -225,7 +265,7 @@ class FPPModule(L.LightningModule):
 
     def test_step(self, batch, _):
         _, pred_mm, masks = self._evaluate(batch, "test")
-        if self.test_dir is None:
+        if self.test_dir is None or self.adapt:
             return
         per = per_image_subset_errors(pred_mm, batch["depth_mm"], masks)
         for i, sid in enumerate(batch["scene_id"]):
@@ -239,6 +279,8 @@ class FPPModule(L.LightningModule):
             self._predictions.setdefault(key, []).append(value)
 
     def _log_metrics(self, stage: str) -> None:
+        if self.adapt:
+            return
         # compute() sums over ranks, so every rank logs the same values (sync_dist keeps them)
         results = {subset: self.metrics[f"{stage}_{subset}"].compute() for subset in SUBSETS}
         for name, value in subset_results(stage, results).items():
@@ -422,8 +464,11 @@ def load_module(ckpt_path: str | Path) -> FPPModule:
     foreign or inconsistent file raises CheckpointError naming it."""
     ckpt = read_checkpoint(ckpt_path)
     try:
-        # evaluated, predicted and exported eagerly, however it was trained
-        module = FPPModule(**(ckpt["hyper_parameters"] | {"compile": None}))
+        # evaluated, predicted and exported eagerly and as a net of its own, however it was
+        # trained (an adapted net's settings stay in its hyperparameters)
+        hp = ckpt["hyper_parameters"]
+        module = FPPModule(**(hp | {"compile": None, "adapt": None}))
+        module.hparams["adapt"] = hp.get("adapt")
     except (TypeError, ValueError, hydra.errors.InstantiationException) as e:
         raise CheckpointError(f"{ckpt_path}: its net settings do not build a net ({e})") from None
     check_weights(ckpt_path, ckpt["state_dict"], module.state_dict())

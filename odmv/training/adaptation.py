@@ -1,0 +1,56 @@
+"""Label-free adaptation (``adapt=true``): the calibration check that comes before it.
+
+The consistency loss (odmv.training.consistency) fits a depth to the fringes through the rig's
+calibration. If the rig moved after it was calibrated, no depth explains every view, and
+fitting one would teach the net the wrong geometry. So before adapting, the net it starts from
+is run on the user's scenes and each view's mean asked-for depth change is measured: a net's
+own error moves every view alike, a stale calibration moves each view its own way. Where the
+views' spread exceeds ``stale_mm`` the run stops and says so.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from odmv.training.consistency import view_offsets_mm
+
+
+class StaleCalibrationError(ValueError):
+    """The views disagree on the depth: the calibration no longer describes the rig."""
+
+
+def view_offsets(module, loader, views: list[str], max_batches: int = 8) -> dict[str, float]:
+    """Each view's mean asked-for depth change (mm) of ``module``'s depth over up to
+    ``max_batches`` batches of ``loader``, by view name (``views``: the batches' views)."""
+    sums, totals = None, None
+    was_training = module.training
+    module.eval()
+    with torch.no_grad():
+        for i, batch in enumerate(loader):
+            if i >= max_batches:
+                break
+            depth_mm = module.depth_mm(module.run(batch))
+            linear = (batch["fringes"].float() + 1) / 2 * module.norm.intensity_max
+            mean, total = view_offsets_mm(depth_mm, linear, batch["calibration"], module.adapt)
+            sums = mean * total if sums is None else sums + mean * total
+            totals = total if totals is None else totals + total
+    module.train(was_training)
+    return {v: float(s / t) for v, s, t in zip(views, sums, totals, strict=True) if t > 0}
+
+
+def check_calibration(offsets: dict[str, float], stale_mm: float, where) -> float | None:
+    """The spread (population std, mm) of the views' ``offsets``; raises
+    StaleCalibrationError naming ``where`` if it exceeds ``stale_mm``. None with fewer than
+    two views (one view cannot disagree with itself)."""
+    if len(offsets) < 2:
+        return None
+    spread = float(torch.tensor(list(offsets.values()), dtype=torch.float64).std(unbiased=False))
+    if spread > stale_mm:
+        per_view = ", ".join(f"{v} {x:+.3f}" for v, x in offsets.items())
+        raise StaleCalibrationError(
+            f"{where}: the views disagree on the depth (they ask for {per_view} mm; spread "
+            f"{spread:.3f} mm > adaptation.stale_mm={stale_mm}): the calibration no longer "
+            "describes the rig (a projector moved?); recalibrate and convert the captures "
+            "again, or adaptation.check_calibration=false to adapt anyway"
+        )
+    return spread

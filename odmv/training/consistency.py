@@ -1,0 +1,159 @@
+"""The label-free loss: how well a depth map explains the fringe images the rig captured.
+
+A depth map, through the calibrated rig (odmv.classical.geometry), predicts the phase of every
+view's fringe at every pixel. The image carries the true phase: I = A + B cos(phi) with an
+offset A and an amplitude B that albedo, shading, ambient light and defocus set per pixel. In a
+small window around each pixel the image is fitted, in closed form (least squares), as
+A + a cos(phi_d) + b sin(phi_d) with phi_d the depth's phase: the fringe re-rendered from the
+depth with its offset and amplitude fitted, i.e. the image demodulated with the depth's own
+phase as the carrier. Its phase e = atan2(-b, a) is what the depth gets wrong, at the window's
+resolution; the loss is the circular distance 1 - cos(e) over every view, so one depth must
+explain all of them where two or more projectors light a pixel. It is zero at the true depth
+of a noise-free scene whose offset and amplitude are constant over each window, rises with a
+depth offset as 1 - cos(2 pi offset / P) in the projector, and sees the fringe order only
+modulo a period (about 11 mm of height on the twin): it refines a depth that is right to
+within half a period; it cannot find the order.
+
+Each pixel's weight (no gradient) is the fitted amplitude sqrt(a^2 + b^2) (none below
+``min_amplitude``: shadow, no fringe) times the fit's R^2 to the power ``quality_power``: the
+share of the window's intensity variance that the depth's fringe explains, which a uniform
+phase error does not lower but a window across an edge, a shadow boundary or an albedo change
+does, where the fitted phase is biased. Even so the loss is not minimal at the truth for a net
+(on the nominal twin an unanchored fine-tune drifts from 0.130 to 0.147 mm in 50 steps), so
+adaptation adds a trust region: ``anchor`` times the mean absolute change (mm) from the net it
+started from, which small biased pulls do not overcome and large consistent ones (a plane
+misplaced under defocus) do (experiments/results/adapt/notebook.md).
+
+Why not the phase of Fourier-transform profilometry as the target: demodulated against the
+reference plane's carrier, one image's phase is known only at the resolution of a fringe period
+and scores 0.44 mm on the twin, three times the networks' error (docs/findings.md, section 6).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+
+from odmv.classical.geometry import offset_from_depth, phase_from_depth
+
+
+@dataclass(frozen=True)
+class ConsistencySettings:
+    """``window_px``: the fit's square window (odd, camera px; about half a fringe period on
+    the camera: 5 at 64 px, where a period spans about 10 px). ``min_amplitude``: the fitted
+    amplitude (linear intensity) below which a pixel carries no weight. ``quality_power``: the
+    exponent of the fit's R^2 in the weight. ``anchor``: the trust region's weight per mm of
+    mean absolute change from the starting net. ``stale_mm``: the spread (std, mm) of the
+    views' mean asked-for depth changes above which the calibration is taken to be stale
+    (:func:`view_offsets_mm`)."""
+
+    window_px: int = 5
+    min_amplitude: float = 0.02
+    quality_power: float = 4.0
+    anchor: float = 0.02
+    stale_mm: float = 0.05
+
+    def __post_init__(self):
+        if self.window_px < 3 or self.window_px % 2 == 0:
+            raise ValueError(f"adapt.window_px: {self.window_px} must be odd and at least 3")
+        for key in ("min_amplitude", "quality_power", "anchor", "stale_mm"):
+            if getattr(self, key) < 0:
+                raise ValueError(f"adapt.{key}: {getattr(self, key)} must be >= 0")
+
+    @classmethod
+    def of(cls, values: dict) -> ConsistencySettings:
+        """The settings among ``values`` (an ``adaptation`` config, which holds others too)."""
+        return cls(**{k: values[k] for k in asdict(cls()) if k in values})
+
+
+def _box(x: torch.Tensor, k: int) -> torch.Tensor:
+    """Mean over a k x k window around each pixel (fewer pixels at the border)."""
+    return F.avg_pool2d(x, k, stride=1, padding=k // 2, count_include_pad=False)
+
+
+def fringe_fit(
+    fringes: torch.Tensor, phase_rad: torch.Tensor, window_px: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The windowed least-squares fit of each view's image (B x S x H x W, linear intensity)
+    as A + a cos(phase) + b sin(phase) -> (its phase e = atan2(-b, a) in rad, the amplitude
+    sqrt(a^2 + b^2), the fit's R^2 in [0, 1]), each B x S x H x W; differentiable in
+    ``phase_rad``. Runs in float32."""
+    with torch.autocast(fringes.device.type, enabled=False):
+        image, phase = fringes.float(), phase_rad.float()
+        c, s = torch.cos(phase), torch.sin(phase)
+        k = window_px
+        mc, ms, mi = _box(c, k), _box(s, k), _box(image, k)
+        cc = _box(c * c, k) - mc * mc
+        ss = _box(s * s, k) - ms * ms
+        cs = _box(c * s, k) - mc * ms
+        ci = _box(c * image, k) - mc * mi
+        si = _box(s * image, k) - ms * mi
+        ii = _box(image * image, k) - mi * mi
+        # the centred 2 x 2 normal equations; damped where the phase barely varies
+        det = cc * ss - cs * cs + 1e-6
+        a = (ss * ci - cs * si) / det
+        b = (cc * si - cs * ci) / det
+        amplitude = torch.sqrt(a * a + b * b + 1e-12)
+        r2 = ((a * ci + b * si) / ii.clamp_min(1e-9)).clamp(0, 1)
+        return torch.atan2(-b, a), amplitude, r2
+
+
+def _weights(amplitude, r2, settings: ConsistencySettings, available=None) -> torch.Tensor:
+    with torch.no_grad():
+        w = amplitude * (amplitude >= settings.min_amplitude) * r2**settings.quality_power
+        return w if available is None else w * available[..., None, None]
+
+
+def consistency_loss(
+    depth_mm: torch.Tensor,
+    fringes: torch.Tensor,
+    maps: torch.Tensor,
+    settings: ConsistencySettings,
+    available: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
+    """How far ``depth_mm`` (B x 1 x H x W) is from explaining the ``fringes`` (B x S x H x W,
+    linear intensity) through the calibration ``maps`` (B x S x 6 x H x W): ``loss`` (the
+    weighted mean of 1 - cos(e)), ``phase_rad`` (the weighted RMS of e, detached) and
+    ``weighted`` (the share of view pixels with weight). ``available`` (B x S or None): a
+    missing view carries no weight."""
+    phase = phase_from_depth(depth_mm.float(), maps.float())
+    error, amplitude, r2 = fringe_fit(fringes, phase, settings.window_px)
+    weight = _weights(amplitude, r2, settings, available)
+    total = weight.sum().clamp_min(1e-12)
+    loss = (weight * (1 - torch.cos(error))).sum() / total
+    with torch.no_grad():
+        rms = torch.sqrt((weight * error.square()).sum() / total)
+    return {"loss": loss, "phase_rad": rms, "weighted": (weight > 0).float().mean()}
+
+
+def view_corrections_mm(
+    depth_mm: torch.Tensor, fringes: torch.Tensor, maps: torch.Tensor, settings
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The depth change (mm) each view's fringe asks for at every pixel (B x S x H x W): its
+    fitted phase error as an offset in its projector, through the triangulation; and the
+    pixels' weights. Right calibration: where two views light a pixel they ask for the same
+    change. A stale one (a projector moved after calibrating) makes them disagree."""
+    with torch.no_grad():
+        depth_mm, maps = depth_mm.float(), maps.float()
+        phase = phase_from_depth(depth_mm, maps)
+        error, amplitude, r2 = fringe_fit(fringes, phase, settings.window_px)
+        delta = offset_from_depth(depth_mm, maps)
+        # d depth / d offset of depth = ref + delta g / (1 - delta h)
+        slope = maps[:, :, 3] / (1 - delta * maps[:, :, 4]) ** 2
+        change = error / (2 * torch.pi) * maps[:, :, 1] * slope
+        return change, _weights(amplitude, r2, settings)
+
+
+def view_offsets_mm(
+    depth_mm: torch.Tensor, fringes: torch.Tensor, maps: torch.Tensor, settings
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each view's weighted mean over a batch of the depth change it asks for (S, mm;
+    :func:`view_corrections_mm`), and each view's total weight (S). With the rig as
+    calibrated, a net's error moves every view alike (under defocus the views of the twin ask
+    for +0.10 to +0.12 mm); a projector that moved after calibrating asks for its own (the
+    twin's projectors turned by 0.1 degree: -0.15 to +0.17 mm)."""
+    change, w = view_corrections_mm(depth_mm, fringes, maps, settings)
+    total = w.sum((0, 2, 3))
+    return (w * change).sum((0, 2, 3)) / total.clamp_min(1e-12), total

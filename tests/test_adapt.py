@@ -1,0 +1,242 @@
+"""Label-free adaptation: the depth -> projector projection against the simulator's, the
+consistency loss on noise-free twin scenes (near zero at the truth, rising with a depth offset,
+its gradient pointing back), the calibration check against a turned projector, and
+``adapt=true`` on a dataset whose depth files are gone."""
+
+import csv
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+from helpers import CLEAN, RIG, compose_config, tiny_overrides
+
+from odmv.classical.geometry import coord_from_depth, phase_from_depth, triangulation_maps
+from odmv.data.dataset import DataError, check_spec, load_scene
+from odmv.io.manifest import (
+    DEPTH_FILE,
+    FOOTPRINT_FILE,
+    LIT_FILE,
+    PROJ_COORD_FILE,
+    FringeSpec,
+    load_manifest,
+)
+from odmv.rig import VIEW_NAMES
+from odmv.sim.shifts import Shift
+from odmv.sim.writer import SimSettings, simulate
+from odmv.train import adapted_config, train
+from odmv.training.adaptation import StaleCalibrationError, check_calibration
+from odmv.training.consistency import (
+    ConsistencySettings,
+    consistency_loss,
+    fringe_fit,
+    view_offsets_mm,
+)
+from odmv.training.evaluation import evaluate
+from odmv.training.module import load_module
+
+SETTINGS = ConsistencySettings()
+
+
+def test_depth_projects_into_each_projector_as_the_simulator_projects():
+    h = w = 64
+    maps = torch.from_numpy(triangulation_maps(RIG, VIEW_NAMES, h, w, 240.0, 0, 12))[None]
+    cam = RIG.camera_at(w, h)
+    origin, d = cam.centre_rays()
+    depth = 141.0 + 12.0 * np.random.default_rng(0).random((h, w))  # mm, plane to 12 mm parts
+    # the camera-axis depth of a point along each pixel's ray: z = (X - C) . r_3
+    t = depth / (d @ cam.R[2])
+    points = origin + t[..., None] * d
+    got = coord_from_depth(torch.from_numpy(depth).float()[None, None], maps)[0].double()
+    for i, proj in enumerate(RIG.projectors().values()):
+        uv = proj.project(points)
+        want = uv[..., 0] if proj.phase_axis == "u" else uv[..., 1]
+        assert np.abs(got[i].numpy() - want).max() < 1e-3  # projector px
+
+
+@pytest.fixture(scope="module")
+def clean_scenes(tmp_path_factory):
+    """Four noise-free 64 px twin scenes whose input is the 240 px fringe (10 camera px)."""
+    out = tmp_path_factory.mktemp("clean") / "clean"
+    settings = SimSettings(
+        out=out, scenes=4, height_px=64, width_px=64, seed=1, images="training",
+        fringe=FringeSpec(train_frequency=1), render=CLEAN,
+    )  # fmt: skip
+    simulate(settings, workers=1, progress=False)
+    return out
+
+
+def _scene(root, sid):
+    m = load_manifest(root)
+    spec = check_spec(m, VIEW_NAMES, 64, None, None)
+    maps = triangulation_maps(m.rig, VIEW_NAMES, 64, 64, spec.period_px, spec.step, spec.n_steps)
+    raw = load_scene(m, sid, spec)
+    as_batch = (torch.from_numpy(x)[None] for x in (raw["fringes"], raw["depth_mm"], maps))
+    return tuple(as_batch)
+
+
+@pytest.mark.parametrize("sid", ["000001", "000003"])
+def test_the_loss_is_least_at_the_true_depth_and_pulls_back_to_it(clean_scenes, sid):
+    fringes, truth, maps = _scene(clean_scenes, sid)
+    error, amplitude, r2 = fringe_fit(fringes, phase_from_depth(truth, maps), 5)
+    used = amplitude >= SETTINGS.min_amplitude
+    assert used.float().mean() > 0.5
+    # the depth's own fringe explains the image, most windows to 0.02 rad (0.8 projector px):
+    # the irradiance falling off along each projector's phase axis, which the window's
+    # constant amplitude reads as a phase, biases every view alike by about -0.010 rad
+    assert error[used].abs().median() < 0.02 and r2[used].median() > 0.98
+    losses, back = [], []
+    for offset_mm in (0.0, 0.1, 0.3, 1.0):
+        depth = (truth + offset_mm).requires_grad_(True)
+        loss = consistency_loss(depth, fringes, maps, SETTINGS)["loss"]
+        loss.backward()
+        losses.append(float(loss))
+        moved = depth.grad != 0
+        back.append(float((depth.grad[moved] > 0).float().mean()))  # descent lowers the depth
+    assert losses == sorted(losses) and losses[0] < 0.2 * losses[-1]
+    assert back[2] > 0.8 and back[3] > 0.8
+
+
+def test_a_turned_projector_makes_the_views_disagree(clean_scenes, tmp_path):
+    """At the true depth through the nominal calibration, the views of the nominal twin ask
+    for the same (no) change; with the projectors turned by 0.1 degree after calibrating they
+    ask for changes of their own, which the check refuses."""
+    turned = tmp_path / "turned"
+    m = load_manifest(clean_scenes)
+    settings = SimSettings(
+        out=turned, scenes=4, height_px=64, width_px=64, seed=1, images="training",
+        fringe=FringeSpec(train_frequency=1), render=CLEAN,
+        shift=Shift("projector_rotation", 0.1, 0),
+    )  # fmt: skip
+    simulate(settings, workers=1, progress=False)
+    spreads = {}
+    for name, root in (("nominal", clean_scenes), ("turned", turned)):
+        sums = np.zeros(4)
+        for sid in ("000000", "000001", "000002", "000003"):
+            fringes, truth, maps = _scene(root, sid)
+            mean, _ = view_offsets_mm(truth, fringes, maps, SETTINGS)
+            sums += mean.numpy() / 4
+        spreads[name] = float(np.std(sums))
+        offsets = dict(zip(m.views, sums.tolist(), strict=True))
+        if name == "nominal":
+            assert check_calibration(offsets, SETTINGS.stale_mm, root) < 0.02
+        else:
+            with pytest.raises(StaleCalibrationError, match="views disagree.*recalibrate"):
+                check_calibration(offsets, SETTINGS.stale_mm, root)
+    assert spreads["turned"] > 5 * spreads["nominal"]
+
+
+@pytest.fixture(scope="module")
+def twin240(tmp_path_factory):
+    """Ten 64 px twin scenes whose network image is the 240 px fringe (as the mini protocol's)."""
+    out = tmp_path_factory.mktemp("twin240") / "twin240"
+    settings = SimSettings(
+        out=out, scenes=10, height_px=64, width_px=64, seed=1, images="training",
+        fringe=FringeSpec(train_frequency=1),
+    )  # fmt: skip
+    simulate(settings, workers=1, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def unlabelled(twin240, tmp_path_factory):
+    """Those scenes without their ground truth: fringes and calibration only."""
+    out = shutil.copytree(twin240, tmp_path_factory.mktemp("unlabelled") / "data")
+    for scene in (out / "scenes").iterdir():
+        for name in (DEPTH_FILE, LIT_FILE, PROJ_COORD_FILE, FOOTPRINT_FILE):
+            (scene / name).unlink(missing_ok=True)
+    return out
+
+
+@pytest.fixture(scope="module")
+def base_run(twin240, tmp_path_factory):
+    out = tmp_path_factory.mktemp("base")
+    ov = tiny_overrides(twin240, out, "head=phase", "reference=true")
+    train(compose_config("train", ov))
+    return out
+
+
+def test_a_dataset_without_depth_is_refused_for_training_and_read_without_labels(unlabelled):
+    m = load_manifest(unlabelled)
+    with pytest.raises(DataError, match=f"{DEPTH_FILE}"):
+        load_scene(m, "000000", check_spec(m, VIEW_NAMES, 64, None, None))
+    raw = load_scene(m, "000000", check_spec(m, VIEW_NAMES, 64, None, None, labels=False))
+    assert set(raw) == {"fringes"} and raw["fringes"].shape == (4, 64, 64)
+
+
+def test_adapt_fine_tunes_a_run_on_fringes_alone(base_run, unlabelled, twin240, tmp_path):
+    out = tmp_path / "adapted"
+    overrides = [
+        "adapt=true",
+        f"init_from={base_run}",
+        f"root={unlabelled}",
+        f"paths.output_dir={out}",
+        "adaptation.epochs=2",
+        "adaptation.check_calibration=false",  # a one-epoch net's depth says nothing of the rig
+        "trainer.limit_train_batches=2",
+        "trainer.enable_progress_bar=false",
+    ]
+    cfg = adapted_config(compose_config("train", overrides), overrides)
+    assert cfg.model.net.base_width == 4 and cfg.data.resolution == 32  # the base run's
+    assert cfg.data.labels is False and cfg.callbacks.checkpoint.monitor == "val/loss"
+    metrics = train(cfg)
+    record = json.loads((out / "metrics.json").read_text())
+    assert record["adapted_from"].endswith(".ckpt") and set(record["view_offsets_mm"]) == set(
+        VIEW_NAMES
+    )
+    assert np.isfinite(metrics["val/loss"])
+    module = load_module(out / record["best_checkpoint"])
+    assert module.adapt is None and module.hparams.adapt["anchor"] == SETTINGS.anchor
+    # where labels exist, the adapted net is measured like any
+    ev = compose_config("evaluate", [f"ckpt_path={out / record['best_checkpoint']}",
+                                     f"root={twin240}", f"paths.output_dir={tmp_path / 'ev'}",
+                                     "figures=0", "progress=false"])  # fmt: skip
+    scores = evaluate(ev, [f"root={twin240}"])
+    assert np.isfinite(scores["test/mae_mm"])
+
+
+def test_adapt_names_what_it_lacks(base_run, unlabelled):
+    for overrides, message in (
+        (["adapt=true", f"root={unlabelled}"], "init_from=RUN"),
+        (["adapt=true", f"init_from={base_run}"], "root=DATASET"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            adapted_config(compose_config("train", overrides), overrides)
+
+
+@pytest.mark.slow
+def test_the_adapt_study_measures_adapted_and_supervised_nets(base_run, tmp_path):
+    """The study (study=adapt's runner) on a tiny base: a shift's training set rendered, both
+    fine-tunes run and scored, the table written, and a second call redoing nothing; an
+    adaptation the check refuses (here at a zero threshold: a one-epoch net's depth explains
+    no view) is recorded as refused."""
+    from omegaconf import OmegaConf
+
+    from odmv.reproduce import TRAIN
+    from odmv.study.adapt import run_adaptation
+
+    def study(name, shift, *overrides):
+        out = tmp_path / name
+        settings = {"bases": [str(base_run)], "shifts": [shift], "scenes": 6, "test_scenes": 4}
+        cfg = OmegaConf.create(settings | {"overrides": ["adaptation.epochs=1", *overrides]})
+
+        def run():
+            run_adaptation(cfg, out / "runs", out / "out", None, TRAIN, "the study")
+
+        run()
+        rows = list(csv.DictReader((out / "out" / "adapt.csv").open()))
+        return run, out / "out", rows[0]
+
+    run, out, row = study("measured", "defocus:1.5", "adaptation.check_calibration=false")
+    assert float(row["adapted_mm"]) > 0 and float(row["supervised_mm"]) > 0
+    assert float(row["adapted_nominal_mm"]) > 0 and row["refused"] == "False"
+    assert "| defocus:1.5 |" in (out / "adapt.md").read_text()
+    scores = (out / "scores.json").stat().st_mtime_ns
+    run()
+    assert (out / "scores.json").stat().st_mtime_ns == scores
+
+    _, out, row = study("refused", "projector_rotation:1", "adaptation.stale_mm=0")
+    assert row["refused"] == "True" and float(row["supervised_mm"]) > 0
+    refused = out / "runs" / f"{base_run.name}-adapted-projector_rotation_1" / "refused.txt"
+    assert "views disagree" in refused.read_text()
