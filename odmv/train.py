@@ -177,15 +177,18 @@ def adapted_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
         raise ValueError("adapt: root=DATASET names the fringe images to adapt to")
     a = cfg.adaptation
     out = _moved_targets(OmegaConf.load(saved))
+    out.paths = OmegaConf.to_container(cfg.paths, resolve=True)
     # the dataset: read, never rendered; without its ground truth (its files may be absent)
     # unless this is the supervised fine-tune that adaptation is measured against
     data = {"root": str(Path(root).resolve()), "render": False, "labels": bool(a.supervised)}
     data |= {"calibration": True, "val_from_train": a.val_share}  # the loss needs the maps
+    if a.replay and not a.supervised:  # the run's own training scenes, as it read them
+        own = OmegaConf.to_container(out.data, resolve=True) | {"calibration": True}
+        data["replay"] = {k: v for k, v in own.items() if k != "_target_"} | {"render": False}
     OmegaConf.update(out, "data", data, merge=True)
     out.root = data["root"]
     out.adapt, out.adaptation = not a.supervised, OmegaConf.to_container(a, resolve=True)
     out.init_from, out.ckpt_path, out.resume = str(ckpt), None, None
-    out.paths = OmegaConf.to_container(cfg.paths, resolve=True)
     out.seed, out.test = cfg.seed, cfg.test
     out.threads = cfg.get("threads") if cfg.get("threads") is not None else out.get("threads")
     out.trainer.max_epochs, out.optimizer.lr = a.epochs, a.lr

@@ -196,6 +196,22 @@ def test_adapt_fine_tunes_a_run_on_fringes_alone(base_run, unlabelled, twin240, 
     assert np.isfinite(scores["test/mae_mm"])
 
 
+def test_adapt_replays_the_twin_it_was_trained_on(base_run, unlabelled, tmp_path):
+    """adaptation.replay: every step also takes a batch of the base run's own labelled
+    training scenes under the base's loss."""
+    out = tmp_path / "replayed"
+    overrides = ["adapt=true", f"init_from={base_run}", f"root={unlabelled}",
+                 f"paths.output_dir={out}", "adaptation.epochs=1", "adaptation.replay=0.5",
+                 "adaptation.check_calibration=false", "trainer.limit_train_batches=2",
+                 "trainer.enable_progress_bar=false"]  # fmt: skip
+    cfg = adapted_config(compose_config("train", overrides), overrides)
+    assert cfg.data.replay.root == str(load_manifest(cfg.data.replay.root).root)
+    train(cfg)
+    logged = list(csv.DictReader((out / "csv" / "metrics.csv").open()))
+    replay = [float(r["train/loss_replay"]) for r in logged if r.get("train/loss_replay")]
+    assert replay and all(np.isfinite(replay))
+
+
 def test_adapt_names_what_it_lacks(base_run, unlabelled):
     for overrides, message in (
         (["adapt=true", f"root={unlabelled}"], "init_from=RUN"),
@@ -219,6 +235,7 @@ def test_the_adapt_study_measures_adapted_and_supervised_nets(base_run, tmp_path
     def study(name, shift, *overrides):
         out = tmp_path / name
         settings = {"bases": [str(base_run)], "shifts": [shift], "scenes": 6, "test_scenes": 4}
+        settings["variants"] = {"adapted": [], "replayed": ["adaptation.replay=1"]}
         cfg = OmegaConf.create(settings | {"overrides": ["adaptation.epochs=1", *overrides]})
 
         def run():
@@ -226,6 +243,7 @@ def test_the_adapt_study_measures_adapted_and_supervised_nets(base_run, tmp_path
 
         run()
         rows = list(csv.DictReader((out / "out" / "adapt.csv").open()))
+        assert [r["variant"] for r in rows] == ["adapted", "replayed"]
         return run, out / "out", rows[0]
 
     run, out, row = study("measured", "defocus:1.5", "adaptation.check_calibration=false")

@@ -71,6 +71,9 @@ class FPPDataModule(L.LightningDataModule):
     ``labels``: False reads the fringes alone, never a scene's depth, lit masks or projector
     coordinates (their files may be absent): a user's rig for label-free adaptation
     (odmv.training.consistency); the samples' depth is NaN and every metric subset empty.
+    ``replay``: the settings of a second data module whose labelled training scenes come with
+    every training batch, as ``{"own": batch, "replay": batch}`` (one epoch: this dataset's
+    batches); None: none.
     """
 
     def __init__(
@@ -102,6 +105,7 @@ class FPPDataModule(L.LightningDataModule):
         view_dropout: float | None = None,
         calibration: bool | None = None,
         labels: bool = True,
+        replay: dict | None = None,
         progress: bool = True,
     ):
         super().__init__()
@@ -133,6 +137,11 @@ class FPPDataModule(L.LightningDataModule):
         self.view_dropout = view_dropout
         self.calibration = bool(calibration)
         self.labels = bool(labels)
+        # another dataset's labelled training scenes, batched beside this one's (adaptation's
+        # replay of the twin a net was trained on)
+        self.replay = None
+        if replay:
+            self.replay = FPPDataModule(**(replay | {"labels": True, "replay": None}))
         self.progress = progress
         self.manifest: Manifest | None = None
         self.spec: SampleSpec | None = None
@@ -143,6 +152,8 @@ class FPPDataModule(L.LightningDataModule):
     # ------------------------------------------------------------------ preparation
     def prepare_data(self) -> None:
         """Render the synthetic dataset, or finish an interrupted render (rank zero only)."""
+        if self.replay is not None:
+            self.replay.prepare_data()
         if self.simulate is None:
             if (self.root / MANIFEST).is_file():
                 return
@@ -162,6 +173,8 @@ class FPPDataModule(L.LightningDataModule):
         train and val, validate val, test and predict only test; None decodes all three."""
         if self.manifest is None:
             self._read_manifest()
+        if self.replay is not None and stage in ("fit", None):
+            self.replay.setup("fit")
         for name in _STAGE_SPLITS.get(stage, ("train", "val", "test")):
             if name in self.datasets:
                 continue
@@ -345,7 +358,12 @@ class FPPDataModule(L.LightningDataModule):
         )
 
     def train_dataloader(self):
-        return self._loader("train", shuffle=True)
+        own = self._loader("train", shuffle=True)
+        if self.replay is None:
+            return own
+        from lightning.pytorch.utilities import CombinedLoader
+
+        return CombinedLoader({"own": own, "replay": self.replay.train_dataloader()}, "min_size")
 
     def val_dataloader(self):
         return self._loader("val", shuffle=False)

@@ -6,9 +6,10 @@ without labels, and fine-tuned with them (the ceiling), on the shifted and the n
 For each base run (``adapt.bases``: finished runs, with the phase head or not) and each shift
 (``adapt.shifts``): a training set of ``adapt.scenes`` scenes of the shifted twin (the scene
 seed after the robustness sets': the dataset's seed + 3; all labelled train, a tenth held out
-by each fine-tune), then the training app with ``adapt=true init_from=RUN root=SET``
-(label-free; a stale calibration is refused and recorded as such) and the same with
-``adaptation.supervised=true`` (with the set's depth). The base, adapted and supervised nets
+by each fine-tune), then the training app with ``adaptation.supervised=true init_from=RUN
+root=SET`` (with the set's depth: the ceiling) and, for each of ``adapt.variants`` (NAME:
+train overrides), ``adapt=true init_from=RUN root=SET`` (label-free; a stale calibration is
+refused and recorded as such). The base, adapted and supervised nets
 are scored on the robustness study's shifted twin (``adapt.test_scenes`` scenes, the dataset's
 seed + 2) and the adapted one on the nominal twin as well. Resumable: a finished fine-tune or
 score is kept. Writes, in the study's ``out``: ``adapt.md`` (the table: MAE, the share of the
@@ -94,6 +95,8 @@ def measure(cfg, runs_dir: Path, out: Path, threads, train: list[str]) -> list[d
     if missing:
         raise ValueError(f"adapt.bases: {', '.join(missing)}: not a finished run (no {METRICS})")
     extra = list(cfg.get("overrides") or [])
+    # each adaptation variant: NAME -> its train overrides (the adapted runs' names)
+    variants = {k: list(v or []) for k, v in (cfg.get("variants") or {"adapted": []}).items()}
     rows = []
     for base in bases:
         source = recorded_dataset(json.loads((base / METRICS).read_text()))
@@ -103,26 +106,36 @@ def measure(cfg, runs_dir: Path, out: Path, threads, train: list[str]) -> list[d
             label = shift.label()
             test = shifted_set(source, shift, cfg.test_scenes, classical=False)
             data = training_set(source, shift, cfg.scenes)
-            row = {"base": base.name, "shift": label}
-            row["base_mm"] = _score(scores, path, f"{base.name}|{label}", base, test, threads)
-            row["base_nominal_mm"] = base_nominal
-            for kind, supervised in (("adapted", False), ("supervised", True)):
-                name = f"{base.name}-{kind}-{label.replace(':', '_')}"
+            base_mm = _score(scores, path, f"{base.name}|{label}", base, test, threads)
+            name = f"{base.name}-supervised-{label.replace(':', '_')}"
+            print(f"{name}: fine-tuning on {data.name}", flush=True)
+            ceiling = fine_tune(train, base, data, runs_dir / name, True, threads, extra)
+            _keep(runs_dir / name, out / "runs" / name)
+            supervised_mm = _score(scores, path, f"{name}|{label}", runs_dir / name, test, threads)
+            for variant, settings in variants.items():
+                row = {"base": base.name, "shift": label, "variant": variant}
+                row |= {"base_mm": base_mm, "base_nominal_mm": base_nominal}
+                row |= {
+                    "supervised_mm": supervised_mm,
+                    "supervised_seconds": ceiling.get("train_seconds"),
+                }
+                name = f"{base.name}-{variant}-{label.replace(':', '_')}"
                 folder = runs_dir / name
-                print(f"{name}: fine-tuning on {data.name}", flush=True)
-                result = fine_tune(train, base, data, folder, supervised, threads, extra)
+                print(f"{name}: adapting to {data.name}", flush=True)
+                result = fine_tune(train, base, data, folder, False, threads, [*extra, *settings])
                 _keep(folder, out / "runs" / name)
                 if isinstance(result, str):
-                    row[f"{kind}_refused"] = result
-                    continue
-                row[f"{kind}_mm"] = _score(scores, path, f"{name}|{label}", folder, test, threads)
-                row[f"{kind}_seconds"] = result.get("train_seconds")
-                if kind == "adapted":
+                    row["adapted_refused"] = result
+                else:
+                    row["adapted_mm"] = _score(
+                        scores, path, f"{name}|{label}", folder, test, threads
+                    )
                     key = f"{name}|nominal"
                     row["adapted_nominal_mm"] = _score(scores, path, key, folder, nominal, threads)
+                    row["adapted_seconds"] = result.get("train_seconds")
                     row["view_spread_mm"] = result.get("view_spread_mm")
-            rows.append(row)
-            print(_line(row), flush=True)
+                rows.append(row)
+                print(_line(row), flush=True)
     return rows
 
 
@@ -155,7 +168,10 @@ def gap_closed(row: dict) -> float | None:
 def _line(row: dict) -> str:
     adapted = row.get("adapted_mm")
     shown = "refused" if adapted is None else f"{adapted:.4f}"
-    return f"{row['base']} {row['shift']}: base {row['base_mm']:.4f}, adapted {shown} mm"
+    return (
+        f"{row['base']} {row['shift']} {row['variant']}: base {row['base_mm']:.4f}, adapted "
+        f"{shown}, supervised {row['supervised_mm']:.4f} mm"
+    )
 
 
 def _cell(x, fmt="{:.4f}") -> str:
@@ -172,9 +188,9 @@ def write_table(rows: list[dict], out: Path, command: str) -> None:
         "(base - supervised); nominal: the adapted net on the nominal twin against the base's. "
         "Refused: the calibration check stopped the adaptation (the views disagree).",
         "",
-        "| base | shift | base | adapted | supervised | gap closed | nominal: base, adapted "
-        "| adapt s |",
-        "|---|---|---:|---:|---:|---:|---:|---:|",
+        "| base | shift | variant | base | adapted | supervised | gap closed | nominal: base, "
+        "adapted | adapt s |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|",
     ]
     csv_rows = []
     for r in rows:
@@ -182,7 +198,7 @@ def write_table(rows: list[dict], out: Path, command: str) -> None:
         adapted = "refused" if "adapted_refused" in r else _cell(r.get("adapted_mm"))
         nominal = f"{r['base_nominal_mm']:.4f}, {_cell(r.get('adapted_nominal_mm')) or '-'}"
         lines.append(
-            f"| {r['base']} | {r['shift']} | {r['base_mm']:.4f} | {adapted} | "
+            f"| {r['base']} | {r['shift']} | {r['variant']} | {r['base_mm']:.4f} | {adapted} | "
             f"{_cell(r.get('supervised_mm'))} | {_cell(closed, '{:.0%}')} | {nominal} | "
             f"{_cell(r.get('adapted_seconds'), '{:.0f}')} |"
         )

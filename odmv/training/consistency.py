@@ -47,18 +47,21 @@ class ConsistencySettings:
     exponent of the fit's R^2 in the weight. ``anchor``: the trust region's weight per mm of
     mean absolute change from the starting net. ``stale_mm``: the spread (std, mm) of the
     views' mean asked-for depth changes above which the calibration is taken to be stale
-    (:func:`view_offsets_mm`)."""
+    (:func:`view_offsets_mm`). ``replay``: the weight of the starting net's own loss on
+    batches of its own (labelled) training scenes, beside every batch of the user's: what it
+    knew of the twin is kept (0: none)."""
 
     window_px: int = 5
     min_amplitude: float = 0.02
     quality_power: float = 4.0
     anchor: float = 0.02
     stale_mm: float = 0.05
+    replay: float = 0.0
 
     def __post_init__(self):
         if self.window_px < 3 or self.window_px % 2 == 0:
             raise ValueError(f"adapt.window_px: {self.window_px} must be odd and at least 3")
-        for key in ("min_amplitude", "quality_power", "anchor", "stale_mm"):
+        for key in ("min_amplitude", "quality_power", "anchor", "stale_mm", "replay"):
             if getattr(self, key) < 0:
                 raise ValueError(f"adapt.{key}: {getattr(self, key)} must be >= 0")
 

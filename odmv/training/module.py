@@ -210,10 +210,15 @@ class FPPModule(L.LightningModule):
 
     # ---------------------------------------------------------------- steps
     def training_step(self, batch, _):
+        replay = batch.get("replay")  # adaptation's batch of the twin the net was trained on
+        batch = batch.get("own", batch)
         out = self.run(batch)
         terms = (
             self.adapt_terms(batch, out) if self.adapt else composite_loss(out, batch, self.weights)
         )
+        if replay is not None:
+            terms["replay"] = composite_loss(self.run(replay), replay, self.weights)["loss"]
+            terms["loss"] = terms["loss"] + self.adapt.replay * terms["replay"]
         if not torch.isfinite(terms["loss"]):  # stop: every later step and metric would be NaN
             bad = [k for k, v in terms.items() if not torch.isfinite(v)]
             raise NonFiniteLossError(
