@@ -10,6 +10,7 @@ import fnmatch
 import hashlib
 import itertools
 import json
+import shlex
 import shutil
 import subprocess
 import time
@@ -22,6 +23,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig, OmegaConf
 
 from odmv.classical.row import CAPTURES, classical_row
+from odmv.cli import task_overrides
 from odmv.config import compose_train
 from odmv.io.atomic import write_json, write_text
 from odmv.io.runfolder import CONFIG, HELDOUT, METRICS, PREDICTIONS, ROBUSTNESS, SCENES_CSV
@@ -398,7 +400,8 @@ def run_study(cfg: DictConfig, train: list[str]) -> Path:
             flush=True,
         )
     if cfg.get("adapt"):  # label-free adaptation of finished runs (odmv.study.adapt)
-        command = f"python -m odmv.reproduce protocol={protocol} study=adapt"
+        given = task_overrides() or [f"protocol={protocol}", "study=adapt"]
+        command = "python -m odmv.reproduce " + " ".join(shlex.quote(o) for o in given)
         run_adaptation(cfg.adapt, runs_dir, out, threads, train, command)
     rows = dict(cfg.rows or {})
     if rows:  # a study's own rows: one table of them, each row's seeds together
