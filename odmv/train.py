@@ -32,7 +32,7 @@ from odmv.cli import (
     tool,
 )
 from odmv.io.atomic import write_json, write_text
-from odmv.io.runfolder import CONFIG, METRICS, portable_record
+from odmv.io.runfolder import CONFIG, METRICS, portable, portable_record
 from odmv.training.adaptation import check_calibration, view_offsets
 from odmv.training.checkpoint import (
     AtomicCheckpointIO,
@@ -296,7 +296,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
             )
             metrics.update({k: float(v) for k, v in results[0].items()})
         if fine_tune:
-            metrics.update(adapted_from=str(cfg.init_from), **calibration)
+            metrics.update(adapted_from=portable(cfg.init_from), **calibration)
         overrides = task_overrides()
         metrics.update(
             best_checkpoint=best,
