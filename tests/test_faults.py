@@ -328,7 +328,7 @@ def test_a_failed_run_leaves_no_empty_folder_and_a_corrected_rerun_gets_its_own_
     (out / ".hydra" / "config.yaml").write_text("stale: true\n")
     done = _app("train", *args, cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
-    assert "stale" not in (out / ".hydra" / "config.yaml").read_text()
+    assert "stale: true" not in (out / ".hydra" / "config.yaml").read_text()
 
 
 # ---------------------------------------------------------------- resume is the same run
