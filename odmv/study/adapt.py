@@ -28,7 +28,7 @@ from pathlib import Path
 from odmv.io.atomic import write_csv, write_json, write_text
 from odmv.io.runfolder import METRICS, portable, recorded_dataset
 from odmv.sim.shifts import NOMINAL_SHIFT, Shift, parse_shift
-from odmv.study.heldout import evaluate_on, source_seed, twin_dataset
+from odmv.study.heldout import evaluate_on, source_seed, twin_dataset, twin_settings
 from odmv.study.robustness import shifted_set
 
 SCENES = 100
@@ -42,7 +42,8 @@ def training_set(source: Path, shift: Shift, scenes: int = SCENES) -> Path:
     """The shifted twin's training scenes (rendered on first use), all labelled train."""
     seed = source_seed(source) + SEED_OFFSET
     name = f"adapt{scenes}-seed{seed}-{shift.label().replace(':', '_')}"
-    return twin_dataset(source, name, scenes, seed, "training", shift, split="train")
+    settings = twin_settings(source, name, scenes, seed, "training", shift, split="train")
+    return twin_dataset(source, settings)
 
 
 def fine_tune(

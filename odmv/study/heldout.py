@@ -80,17 +80,9 @@ def twin_settings(
     return SimSettings.from_dict(spec | {"out": str(out)})
 
 
-def twin_dataset(
-    source: Path,
-    name: str,
-    scenes: int,
-    seed: int,
-    images: str,
-    shift: Shift | None = None,
-    split: str = "test",
-) -> Path:
-    """Render (or finish) the twin of ``twin_settings``; returns its folder."""
-    settings = twin_settings(source, name, scenes, seed, images, shift, split)
+def twin_dataset(source: Path, settings: SimSettings) -> Path:
+    """Render (or finish) the twin of ``source`` that ``settings`` (:func:`twin_settings`)
+    describe; returns its folder."""
     out = Path(settings.out)
     m = json.loads((source / MANIFEST).read_text())
     if not settings.complete():
@@ -110,7 +102,8 @@ def heldout_dataset(source: Path, scenes: int = SCENES) -> Path:
     """Render (or finish) the held-out twin of dataset ``source`` (``scenes`` scenes); returns
     its folder."""
     seed = source_seed(source) + 1
-    return twin_dataset(source, f"heldout{scenes}-seed{seed}", scenes, seed, "training")
+    name = f"heldout{scenes}-seed{seed}"
+    return twin_dataset(source, twin_settings(source, name, scenes, seed, "training"))
 
 
 def source_seed(source: Path) -> int:

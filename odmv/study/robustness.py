@@ -65,8 +65,9 @@ def shifted_set(source: Path, shift: Shift, scenes: int = SCENES, classical: boo
     name = f"robust{scenes}-seed{seed}-{shift.label().replace(':', '_')}"
     full = twin_settings(source, name, scenes, seed, "full", shift)
     if classical or full.complete():
-        return twin_dataset(source, name, scenes, seed, "full", shift)
-    return twin_dataset(source, f"{name}-net", scenes, seed, "training", shift)
+        return twin_dataset(source, full)
+    net = twin_settings(source, f"{name}-net", scenes, seed, "training", shift)
+    return twin_dataset(source, net)
 
 
 def score_run(
