@@ -22,6 +22,7 @@ from odmv.io.manifest import (
     FringeSpec,
     load_manifest,
 )
+from odmv.io.validation import validate
 from odmv.rig import VIEW_NAMES
 from odmv.sim.shifts import Shift
 from odmv.sim.writer import SimSettings, simulate
@@ -163,6 +164,17 @@ def test_a_dataset_without_depth_is_refused_for_training_and_read_without_labels
         load_scene(m, "000000", check_spec(m, VIEW_NAMES, 64, None, None))
     raw = load_scene(m, "000000", check_spec(m, VIEW_NAMES, 64, None, None, labels=False))
     assert set(raw) == {"fringes"} and raw["fringes"].shape == (4, 64, 64)
+    report = validate(unlabelled)
+    assert report.ok and "no ground truth" in report.summary(unlabelled)
+
+
+def test_a_dataset_missing_some_scenes_depth_is_named(twin240, tmp_path):
+    partial = shutil.copytree(twin240, tmp_path / "partial")
+    (partial / "scenes" / "000002" / DEPTH_FILE).unlink()
+    report = validate(partial)
+    assert [p for p in report.problems if DEPTH_FILE in p] == [
+        f"{partial / 'scenes' / '000002' / DEPTH_FILE}: no such file"
+    ]
 
 
 def test_adapt_fine_tunes_a_run_on_fringes_alone(base_run, unlabelled, twin240, tmp_path):

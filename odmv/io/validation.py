@@ -31,13 +31,17 @@ class Report:
     scenes: int = 0
     views: int = 0
     images: int = 0
+    labelled: bool = True  # False: no scene holds ground truth (a user's rig, fringes only)
 
     @property
     def ok(self) -> bool:
         return not self.problems
 
     def summary(self, root: Path) -> str:
-        return f"{root}: ok, {self.scenes} scenes, {self.views} views, {self.images} fringe images"
+        line = f"{root}: ok, {self.scenes} scenes, {self.views} views, {self.images} fringe images"
+        if not self.labelled:
+            line += "; no ground truth (fringes only: for label-free adaptation, adapt=true)"
+        return line
 
 
 def _check_image(
@@ -115,6 +119,8 @@ def validate(root: str | Path, deep: bool = True, scene_ids: list[str] | None = 
         )
     scenes = m.scenes if scene_ids is None else [s for s in m.scenes if s["id"] in scene_ids]
     report.scenes = len(scenes)
+    # a dataset without any depth file holds fringes only; one with some lacks the others
+    report.labelled = any((m.scene_dir(s["id"]) / DEPTH_FILE).exists() for s in scenes)
     for scene in scenes:
         sdir = m.scene_dir(scene["id"])
         if not sdir.is_dir():
@@ -122,17 +128,18 @@ def validate(root: str | Path, deep: bool = True, scene_ids: list[str] | None = 
             continue
         checks = [(p, [FRINGE_CHANNEL]) for p in m.fringe_files(scene["id"])]
         report.images += len(checks)
-        checks += [(sdir / DEPTH_FILE, [DEPTH_CHANNEL]), (sdir / LIT_FILE, views)]
-        if not m.extra.get("source"):  # imported datasets have no projector coordinates
-            checks.append((sdir / PROJ_COORD_FILE, views))
-        if (sdir / FOOTPRINT_FILE).exists():  # optional (odmv.data.subsets)
-            checks.append((sdir / FOOTPRINT_FILE, views))
+        if report.labelled:
+            checks += [(sdir / DEPTH_FILE, [DEPTH_CHANNEL]), (sdir / LIT_FILE, views)]
+            if not m.extra.get("source"):  # imported datasets have no projector coordinates
+                checks.append((sdir / PROJ_COORD_FILE, views))
+            if (sdir / FOOTPRINT_FILE).exists():  # optional (odmv.data.subsets)
+                checks.append((sdir / FOOTPRINT_FILE, views))
         nan_depth = bool(m.extra.get("invalid_depth"))
         for path, channels in checks:
             problem = _check_image(path, channels, shape, deep, nan_depth)
             if problem:
                 report.problems.append(problem)
-        if deep and not any(p.startswith(str(sdir)) for p in report.problems):
+        if deep and report.labelled and not any(p.startswith(str(sdir)) for p in report.problems):
             problem = _check_coords(sdir, views)
             if problem:
                 report.problems.append(problem)
