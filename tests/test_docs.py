@@ -52,7 +52,8 @@ def _recorded_numbers() -> list[float]:
     for runs in results.rglob("runs.csv"):
         for row in csv.DictReader(runs.open()):
             found += [float(v) for k, v in row.items() if "mae" in k and v]
-    docs = ("mini/tables.md", "robustness/robustness.md", "accuracy/notebook.md", "adapt/adapt.md")
+    docs = ("mini/tables.md", "robustness/robustness.md", "accuracy/notebook.md")
+    docs += ("adapt/adapt.md", "adapt/notebook.md")
     for doc in docs:
         found += [float(x) for x in re.findall(r"\d+\.\d+", (results / doc).read_text())]
     for record in results.glob("**/runs/*/*.json"):
