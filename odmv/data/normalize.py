@@ -66,6 +66,10 @@ class Normalization:
         lib = torch if isinstance(images, torch.Tensor) else np
         return 2 * lib.clip(images / self.intensity_max, 0, 1) - 1
 
+    def intensity(self, fringes):
+        """[-1, 1] -> linear intensity (0 .. intensity_max): :meth:`fringes` undone."""
+        return (fringes + 1) / 2 * self.intensity_max
+
     def depth(self, depth_mm):
         """mm -> network units."""
         return (depth_mm - self.depth_center_mm) / self.depth_half_range_mm

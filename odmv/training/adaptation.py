@@ -30,7 +30,7 @@ def view_offsets(module, loader, views: list[str], max_batches: int = 8) -> dict
             if i >= max_batches:
                 break
             depth_mm = module.depth_mm(module.run(batch))
-            linear = (batch["fringes"].float() + 1) / 2 * module.norm.intensity_max
+            linear = module.norm.intensity(batch["fringes"].float())
             mean, total = view_offsets_mm(depth_mm, linear, batch["calibration"], module.adapt)
             sums = mean * total if sums is None else sums + mean * total
             totals = total if totals is None else totals + total

@@ -174,7 +174,7 @@ class FPPModule(L.LightningModule):
         ``phase_rad`` (its weighted RMS phase error), ``change_mm`` (the mean absolute change
         from the starting net) and their sum ``loss``, consistency + anchor x change."""
         depth_mm = self.depth_mm(out)
-        linear = (batch["fringes"].float() + 1) / 2 * self.norm.intensity_max
+        linear = self.norm.intensity(batch["fringes"].float())
         fit = consistency_loss(
             depth_mm, linear, batch["calibration"], self.adapt, batch.get("available")
         )
