@@ -78,6 +78,7 @@ def run_summary(cfg: DictConfig) -> dict:
         "depth_target": cfg.data.get("depth_target"),
         "precision": str(cfg.trainer.precision),
         "ema": cfg.get("ema"),
+        "distill_from": cfg.get("distill_from"),
     }
 
 
@@ -98,6 +99,7 @@ def build(cfg: DictConfig):
         run_info=run_summary(cfg),
         compile=cfg.get("compile"),
         adapt=adapt_settings(cfg),
+        distill=distill_settings(cfg),
     )
     loggers = [hydra.utils.instantiate(c) for c in (cfg.get("logger") or {}).values()]
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()]
@@ -118,6 +120,20 @@ def adapt_settings(cfg: DictConfig) -> dict | None:
     if not cfg.get("adapt"):
         return None
     return OmegaConf.to_container(cfg.adaptation, resolve=True) | {"base": str(cfg.init_from)}
+
+
+def distill_settings(cfg: DictConfig) -> dict | None:
+    """``distill_from=RUN`` (a checkpoint, or a finished run folder: its best checkpoint): the
+    teacher's checkpoint and the weights of its outputs (``distill``)."""
+    source = cfg.get("distill_from")
+    if not source:
+        return None
+    path = Path(source)
+    if path.is_dir():
+        path = best_checkpoint(path)[0]
+    if not path.is_file():
+        raise ValueError(f"distill_from: {source}: no such checkpoint or run folder")
+    return OmegaConf.to_container(cfg.distill, resolve=True) | {"teacher": str(path.resolve())}
 
 
 def run_folder_of(ckpt_path: str | Path) -> Path | None:

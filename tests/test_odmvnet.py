@@ -142,7 +142,7 @@ def test_strided_stem_keeps_the_output_scales(row, full_width):
 
 
 def test_full_width_needs_the_strided_stem():
-    with pytest.raises(ValueError, match="only with stem_stride 2"):
+    with pytest.raises(ValueError, match="only with stem_stride > 1"):
         _tiny(full_width=8)
     # unset, the strided net is the one trained before the setting existed (its checkpoints
     # load): the parameter count of that net
@@ -158,15 +158,15 @@ def test_fusion_gives_a_view_the_occlusion_detector_rejects_almost_no_weight():
     mask = torch.ones(2, 1, 4, 16, 16)
     mask[:, :, 2] = 1e-6  # the OCD finds view 2 unlit
     with torch.no_grad():
-        fused = fusion(x, mask)
-        without = fusion(x.clone(), None)
+        fused = fusion(x, mask)[0]
+        without = fusion(x.clone(), None)[0]
     # the rejected view's features do not reach the output ...
     x_other = x.clone()
     x_other[:, :, 2] = -50.0
     with torch.no_grad():
-        assert torch.allclose(fusion(x_other, mask), fused, atol=1e-2)
+        assert torch.allclose(fusion(x_other, mask)[0], fused, atol=1e-2)
         # ... while without the mask they do
-        assert not torch.allclose(fusion(x_other, None), without, atol=1e-2)
+        assert not torch.allclose(fusion(x_other, None)[0], without, atol=1e-2)
 
 
 def test_a_bounded_fusion_keeps_each_views_weight_within_its_bound_of_the_masks_ratio():
@@ -244,8 +244,9 @@ def test_neutral_gate_init_starts_every_gate_uniform_and_the_gates_still_learn()
     out = net(x)
     assert all(torch.equal(m, torch.full_like(m, 0.5)) for m in out["occlusion"])
     # features x mask 0.5 x channel-view 0.5 x spatial 0.5, blended with equal weights
-    for feats, fused in seen["fusion"]:
+    for feats, (fused, weights) in seen["fusion"]:
         torch.testing.assert_close(fused, 0.125 * feats.mean(2))
+        torch.testing.assert_close(weights, torch.full_like(weights, 0.25))
     for feats, gated in seen["gate"]:
         torch.testing.assert_close(gated, 0.5 * feats)
     assert len(seen["fusion"]) == 3 and len(seen["gate"]) == 4

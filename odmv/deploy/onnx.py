@@ -99,34 +99,55 @@ def export_graph(model: torch.nn.Module, example: torch.Tensor, maps: torch.Tens
     return program.model_proto
 
 
+def example_inputs(module: FPPModule) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Two random inputs of the net's shape (and, for the phase head, the twin's calibration
+    maps at the input size: any rig's maps are valid input)."""
+    channels, h, w = input_shape(module)
+    example = torch.randn(2, channels, h, w)
+    maps = None
+    if module.phase_head:
+        spec = module.hparams.input_spec
+        one = triangulation_maps(
+            Rig(), module.hparams.views, h, w, spec["period_px"], spec["step"], spec["n_steps"]
+        )
+        maps = torch.from_numpy(one)[None].expand(2, *one.shape).contiguous()
+    return example, maps
+
+
+def trained_module(ckpt_path: str | Path) -> FPPModule:
+    """The checkpoint's module in eval mode, refused if it was never trained."""
+    module = load_module(ckpt_path).eval()
+    if module.norm is None or not module.hparams.views:
+        raise ValueError(
+            f"{ckpt_path}: the checkpoint has no normalization or views (not trained?)"
+        )
+    return module
+
+
+def module_graph(module: FPPModule, ckpt_path):
+    """The float32 ONNX ModelProto of ``module`` in mm (:class:`DepthInMM`) with its ``odmv``
+    metadata."""
+    example, maps = example_inputs(module)
+    model = export_graph(DepthInMM(module).eval(), example, maps)
+    entry = model.metadata_props.add()
+    meta = metadata(module, ckpt_path) | {"precision": "float32"}
+    entry.key, entry.value = METADATA_KEY, json.dumps(meta)
+    return model
+
+
 def export_onnx(ckpt_path: str | Path, out_dir: str | Path) -> tuple[Path, float]:
     """Write ``out_dir/model.onnx``; returns its path and the largest difference (mm) between
     ONNX Runtime and PyTorch on two random inputs (a check, printed by the app)."""
     import onnx
     import onnxruntime as ort
 
-    module = load_module(ckpt_path).eval()
-    if module.norm is None or not module.hparams.views:
-        raise ValueError(
-            f"{ckpt_path}: the checkpoint has no normalization or views (not trained?)"
-        )
+    module = trained_module(ckpt_path)
     wrapper = DepthInMM(module).eval()
-    channels, h, w = input_shape(module)
-    example = torch.randn(2, channels, h, w)
-    maps = None
-    if module.phase_head:  # the twin's rig at the input size: any rig's maps are valid input
-        spec = module.hparams.input_spec
-        rig = Rig()
-        one = triangulation_maps(
-            rig, module.hparams.views, h, w, spec["period_px"], spec["step"], spec["n_steps"]
-        )
-        maps = torch.from_numpy(one)[None].expand(2, *one.shape).contiguous()
+    example, maps = example_inputs(module)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "model.onnx"
-    model = export_graph(wrapper, example, maps)
-    entry = model.metadata_props.add()
-    entry.key, entry.value = METADATA_KEY, json.dumps(metadata(module, ckpt_path))
+    model = module_graph(module, ckpt_path)
     write_atomic(path, lambda tmp: onnx.save(model, str(tmp)))
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     feed = {"inputs": example.numpy()}

@@ -14,10 +14,14 @@ Choices where the paper (Sec. II.A, Figs. 1-2) is silent, as implemented here:
   convolution brings the last decoder stage back to full resolution, one 3D block merges it
   with that feature, and Main is fused and regressed there; Aux1 and Aux2 then sit on the
   decoder's 1/2 and 1/4 stages, the paper's scales. The plain stem (Table I rows without
-  RVE) strides the same way, so the rows differ in modules, not in resolution.
-- Backbone: four encoder stages (full, 1/2, 1/4, 1/8 resolution) of ``blocks`` 3D residual blocks,
-  max-pooling (1,2,2) between them, a bottleneck at 1/16, and a mirrored decoder with transposed
-  (1,2,2) convolutions. Without ``residual``, stages are vanilla double conv-BN-ReLU blocks.
+  RVE) strides the same way, so the rows differ in modules, not in resolution. ``stem_stride``
+  4 (the light net, beyond the paper) runs the backbone at quarter resolution the same way
+  (a 7 px strided stem kernel, a (1,4,4) transposed convolution back), Aux1 and Aux2 on the
+  1/4 and 1/8 stages; with ``levels`` 3 its bottleneck sits at 1/32, so 480 px still divides.
+- Backbone: four encoder stages (``levels``; full, 1/2, 1/4, 1/8 resolution) of ``blocks`` 3D
+  residual blocks, max-pooling (1,2,2) between them, a bottleneck at 1/16, and a mirrored
+  decoder with transposed (1,2,2) convolutions. Without ``residual``, stages are vanilla
+  double conv-BN-ReLU blocks.
 - 3D ASPP at the bottleneck replaces the second residual block (rates 2, 4, 6 in space, 1 across
   views, plus image pooling), as Table I's note says ASPP replaces intermediate convolutions.
 - Attention gates (Oktay et al.) on every skip, gated by the coarser decoder features.
@@ -52,6 +56,7 @@ from odmv.models.blocks import (
     set_gate_init,
     set_memory_format,
     set_norm,
+    set_separable,
     set_view_padding,
     split_availability,
     stage3d,
@@ -59,7 +64,8 @@ from odmv.models.blocks import (
 )
 from odmv.models.phase import PhaseHead3d, check_head
 
-LEVELS = 4  # encoder stages; the bottleneck sits at 1 / 2**LEVELS
+LEVELS = 4  # encoder stages by default; the bottleneck sits at 1 / (stem_stride * 2**levels)
+STEM_STRIDES = (1, 2, 4)
 
 
 SWITCHES = ("residual", "attention_gates", "aspp", "rve", "ocd_oaf", "ssvr")
@@ -99,6 +105,12 @@ def _rows() -> dict[str, dict[str, bool]]:
 ABLATION_ROWS: dict[str, dict[str, bool]] = _rows()
 
 
+def _stem_kernel(stride: int) -> int:
+    """The strided stem layer's kernel: 2 x stride - 1 wide, so every pixel reaches the
+    coarser grid (3 at stride 1 and 2, 7 at stride 4)."""
+    return max(3, 2 * stride - 1)
+
+
 class ResidualViewEncoder(nn.Module):
     """Per-view 2D features (shared weights), stacked into a volume, refined across views."""
 
@@ -111,7 +123,8 @@ class ResidualViewEncoder(nn.Module):
         self.full = conv_bn_act(cin, full, dims=2) if stride > 1 else None
         first = full if stride > 1 else cin
         self.per_view = nn.Sequential(
-            conv_bn_act(first, cout, stride=stride, dims=2), conv_bn_act(cout, cout, dims=2)
+            conv_bn_act(first, cout, _stem_kernel(stride), stride=stride, dims=2),
+            conv_bn_act(cout, cout, dims=2),
         )
         self.cross_view = nn.Sequential(
             conv_bn_act(cout, cout, kernel=(3, 1, 1)),
@@ -144,7 +157,8 @@ class PlainStem(nn.Module):
         full = full or cout // 2
         self.full = conv_bn_act(cin, full) if stride > 1 else None
         first = full if stride > 1 else cin
-        self.conv = conv_bn_act(first, cout, stride=(1, stride, stride))
+        k = _stem_kernel(stride)
+        self.conv = conv_bn_act(first, cout, (3, k, k), stride=(1, stride, stride))
 
     def forward(self, vol):
         """B x cin x S x H x W -> (volume, full-resolution volume or None)."""
@@ -169,7 +183,9 @@ class ODMVNet(nn.Module):
     (:mod:`odmv.data.views`); a missing view's input is zeroed and the fusion gives it no
     weight, so its images cannot move the depth. ``head`` (beyond the paper): "depth" (None,
     the paper) or "phase", every view's phase, fringe order (``orders`` classes) and confidence
-    besides the regressed depth (:mod:`odmv.models.phase`)."""
+    besides the regressed depth (:mod:`odmv.models.phase`). ``separable`` (beyond the paper;
+    the light net, conf/model/odmvnet_lite.yaml): every full 3D convolution depthwise-separable
+    (:func:`odmv.models.blocks.set_separable`)."""
 
     LOSS_TERMS = ("aux", "view", "occlusion")  # the full model; a Table I row may lack some
 
@@ -189,6 +205,7 @@ class ODMVNet(nn.Module):
         norm: str = "batch",
         view_channels: int = 1,
         stem_stride: int = 1,
+        levels: int = LEVELS,
         view_padding: str = "zeros",
         memory_format: str = "channels_last",
         full_width: int | None = None,
@@ -197,6 +214,7 @@ class ODMVNet(nn.Module):
         availability: bool | None = None,
         head: str | None = None,
         orders: int | None = None,
+        separable: bool = False,
     ):
         super().__init__()
         head, orders = check_head(head, orders)
@@ -215,14 +233,16 @@ class ODMVNet(nn.Module):
             k: ABLATION_ROWS[ablation][k] if v is None else bool(v) for k, v in given.items()
         }
         residual, attention_gates, aspp, rve, ocd_oaf, ssvr = (self.flags[k] for k in SWITCHES)
-        if stem_stride not in (1, 2):
-            raise ValueError(f"stem_stride {stem_stride} unsupported; choose 1 or 2")
+        if stem_stride not in STEM_STRIDES:
+            raise ValueError(f"stem_stride {stem_stride} unsupported; choose 1, 2 or 4")
+        if levels < 3:
+            raise ValueError(f"levels {levels}: at least 3 encoder stages (Main, Aux1, Aux2)")
         if full_width is not None and (stem_stride == 1 or full_width < 1):
             raise ValueError(
-                f"full_width {full_width}: a positive channel count, and only with stem_stride 2"
+                f"full_width {full_width}: a positive channel count, and only with stem_stride > 1"
             )
-        self.stride = stem_stride
-        w = [base_width * 2**i for i in range(LEVELS + 1)]
+        self.stride, self.levels = stem_stride, levels
+        w = [base_width * 2**i for i in range(levels + 1)]
         fw = full_width or w[0] // 2  # the full-resolution stage at stride 2
         self.widths = w
         self.checkpointing = activation_checkpointing
@@ -233,28 +253,30 @@ class ODMVNet(nn.Module):
             else PlainStem(w[0], stem_stride, view_channels, fw)
         )
         self.encoder = nn.ModuleList(
-            stage3d(w[max(i - 1, 0)], w[i], blocks, residual) for i in range(LEVELS)
+            stage3d(w[max(i - 1, 0)], w[i], blocks, residual) for i in range(levels)
         )
         self.pool = nn.MaxPool3d((1, 2, 2))
+        last, neck = w[levels - 1], w[levels]
         if aspp:
-            first = ResBlock3d(w[3], w[4]) if residual else conv_bn_act(w[3], w[4])
-            self.bottleneck = nn.Sequential(first, ASPP3d(w[4], w[4], aspp_rates))
+            first = ResBlock3d(last, neck) if residual else conv_bn_act(last, neck)
+            self.bottleneck = nn.Sequential(first, ASPP3d(neck, neck, aspp_rates))
         else:
-            self.bottleneck = stage3d(w[3], w[4], blocks, residual)
+            self.bottleneck = stage3d(last, neck, blocks, residual)
         self.up = nn.ModuleList(
-            nn.ConvTranspose3d(w[i + 1], w[i], (1, 2, 2), stride=(1, 2, 2)) for i in range(LEVELS)
+            nn.ConvTranspose3d(w[i + 1], w[i], (1, 2, 2), stride=(1, 2, 2)) for i in range(levels)
         )
-        levels = range(LEVELS)
-        self.decoder = nn.ModuleList(stage3d(2 * w[i], w[i], blocks, residual) for i in levels)
+        stages = range(levels)
+        self.decoder = nn.ModuleList(stage3d(2 * w[i], w[i], blocks, residual) for i in stages)
         self.gates = (
-            nn.ModuleList(AttentionGate3d(w[i], w[i + 1], max(4, w[i] // 2)) for i in levels)
+            nn.ModuleList(AttentionGate3d(w[i], w[i + 1], max(4, w[i] // 2)) for i in stages)
             if attention_gates
             else None
         )
-        self.ocd = nn.ModuleList(OcclusionDetector(w[i]) for i in levels) if ocd_oaf else None
+        self.ocd = nn.ModuleList(OcclusionDetector(w[i]) for i in stages) if ocd_oaf else None
         # stride 2: the full-resolution stage after the decoder (see the module docstring)
         if stem_stride > 1:
-            self.up_full = nn.ConvTranspose3d(w[0], fw, (1, 2, 2), stride=(1, 2, 2))
+            up = (1, stem_stride, stem_stride)
+            self.up_full = nn.ConvTranspose3d(w[0], fw, up, stride=up)
             self.decoder_full = conv_bn_act(2 * fw, fw)
         # output heads Main, Aux1, Aux2: the channels of the stages they read
         head_ch = [w[0], w[1], w[2]] if stem_stride == 1 else [fw, w[0], w[1]]
@@ -273,6 +295,7 @@ class ODMVNet(nn.Module):
             if ssvr
             else None
         )
+        set_separable(self, separable)
         set_norm(self, norm)
         set_gate_init(self, gate_init)
         set_view_padding(self, view_padding)
@@ -288,7 +311,7 @@ class ODMVNet(nn.Module):
         if x.ndim != 4:
             raise ValueError(f"ODMVNet expects B x S x H x W fringes, got shape {tuple(x.shape)}")
         b, sc, h, wd = x.shape
-        m = self.stride * 2**LEVELS
+        m = self.stride * 2**self.levels
         if h % m or wd % m:
             raise ValueError(f"ODMVNet needs H and W divisible by {m}, got {h}x{wd}")
         per_view = self.view_channels + self.availability
@@ -309,9 +332,9 @@ class ODMVNet(nn.Module):
             f = self._run(stage, f if i == 0 else self.pool(f))
             skips.append(f)
         f = self._run(self.bottleneck, self.pool(f))
-        masks: list[torch.Tensor | None] = [None] * LEVELS
+        masks: list[torch.Tensor | None] = [None] * self.levels
         stages, stage_masks = {}, {}  # decoder output and OCD mask per level
-        for i in reversed(range(LEVELS)):
+        for i in reversed(range(self.levels)):
             skip = skips[i]
             if self.ocd is not None:
                 masks[i] = self.ocd[i](skip)
@@ -327,22 +350,22 @@ class ODMVNet(nn.Module):
             f = self._run(self.decoder_full, torch.cat([self.up_full(f), full], 1))
             mask = masks[0]
             if mask is not None:  # the level-0 mask, repeated to full resolution
-                mask = F.interpolate(mask, scale_factor=(1, 2, 2), mode="nearest")
+                up = (1, self.stride, self.stride)
+                mask = F.interpolate(mask, scale_factor=up, mode="nearest")
             heads_in = [(f, mask), (stages[0], masks[0]), (stages[1], masks[1])]
-        fused = []
+        fused, blend = [], None  # blend: Main's fusion weights over the views
         for k, (feat, mask) in enumerate(heads_in):
             if self.fusion is not None:
-                fused.append(self.fusion[k](feat, mask, available))
+                features, weights = self.fusion[k](feat, mask, available)
+                fused.append(features)
+                blend = weights if k == 0 else blend
             else:
                 fused.append(view_mean(feat, available))
         outs = [head(f) for head, f in zip(self.heads, fused, strict=True)]
         result = {"depth": outs[0], "aux": outs[1:]}
         if self.phase_head is not None:
             # Main's fusion weights over the views become part of their confidences (as logits)
-            logits = None
-            if self.fusion is not None:
-                blend = self.fusion[0].attend(*heads_in[0], available)[1][:, 0]
-                logits = torch.log(blend.clamp_min(1e-6))
+            logits = None if blend is None else torch.log(blend.clamp_min(1e-6))
             result |= self.phase_head(heads_in[0][0], fused[0], logits)
         if self.ssvr is not None:
             result["views"] = torch.tanh(self.ssvr(heads_in[0][0])[:, 0])

@@ -73,8 +73,8 @@ def main(argv: list[str]) -> int:
         masks: dict[int, list] = {}
         blends: list[torch.Tensor] = []  # each fusion's weights, B x S x h x w, in call order
 
-        def keep_blend(fusion, args, _out, blends=blends):
-            blends.append(fusion.attend(*args)[1][:, 0])
+        def keep_blend(_fusion, _args, out, blends=blends):
+            blends.append(out[1])
 
         for m in module.modules():
             if isinstance(m, OcclusionAwareFusion):

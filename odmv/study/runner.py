@@ -120,6 +120,10 @@ def sweep_overrides(protocol: str, table: str, extra: list[str]) -> list[list[st
     return [list(combo) for combo in itertools.product(*axes)]
 
 
+#: net settings added after rows were trained, with the value that builds the net as before
+NET_SETTINGS_BEFORE = {"separable": False, "levels": 4}
+
+
 def _run_key(cfg: DictConfig) -> str:
     """Hash of everything that shapes a run (not where it is written or what it is called)."""
     cfg = cfg.copy()
@@ -165,6 +169,11 @@ def _run_key(cfg: DictConfig) -> str:
     if not d.get("adapt"):  # label-free adaptation off: its settings are never read
         d.pop("adapt", None)
         d.pop("adaptation", None)
+    if not d.get("distill_from"):  # no teacher: its weights are never read
+        d.pop("distill", None)
+    for key, before in NET_SETTINGS_BEFORE.items():  # the net as it was before the setting
+        if d["model"]["net"].get(key, before) == before:
+            d["model"]["net"].pop(key, None)
     if d["data"].get("labels") is True:  # the ground truth read, as before it could be not
         d["data"].pop("labels")
     for setting in QUIET:  # how a run reports is not what it is

@@ -29,6 +29,7 @@ from odmv.models.blocks import split_availability
 from odmv.models.phase import fuse, has_phase_head
 from odmv.training.checkpoint import CheckpointError, check_weights, read_checkpoint
 from odmv.training.consistency import ConsistencySettings, consistency_loss
+from odmv.training.distill import DistillSettings, distill_terms
 from odmv.training.losses import LossWeights, composite_loss
 from odmv.training.metrics import (
     SUBSETS,
@@ -101,6 +102,7 @@ class FPPModule(L.LightningModule):
         run_info: dict | None = None,
         compile: str | None = None,
         adapt: dict | None = None,
+        distill: dict | None = None,
     ):
         super().__init__()
         # logged by on_fit_start once the data has resolved the views and normalization
@@ -119,6 +121,9 @@ class FPPModule(L.LightningModule):
         # loss; there is no ground truth, so no metric is computed
         self.adapt = ConsistencySettings.of(adapt) if adapt else None
         object.__setattr__(self, "_base", None)  # that net, frozen, off the module tree
+        # distillation (distill_from=RUN): the teacher's outputs as targets beside the truth
+        self.distill = DistillSettings.of(distill) if distill else None
+        object.__setattr__(self, "_teacher_net", None)  # frozen, off the module tree
         self.metrics = torch.nn.ModuleDict(
             {f"{stage}_{subset}": DepthErrors() for stage in ("val", "test") for subset in SUBSETS}
         )
@@ -187,6 +192,30 @@ class FPPModule(L.LightningModule):
             terms["loss"] = terms["loss"] + self.adapt.anchor * terms["change_mm"]
         return terms
 
+    def _teacher(self) -> FPPModule:
+        """The frozen teacher of distillation (loaded at first use), checked to read the same
+        input and depth units as this net."""
+        if self._teacher_net is None:
+            teacher = load_module(self.distill.teacher).eval().requires_grad_(False)
+            hp, mine = teacher.hparams, self.hparams
+            for what, theirs, ours in (
+                ("views", hp.views, mine.views),
+                ("normalization", hp.norm, mine.norm),
+                ("input", _input_keys(hp.input_spec), _input_keys(mine.input_spec)),
+            ):
+                if theirs != ours:
+                    raise ValueError(
+                        f"distill_from: {self.distill.teacher}: the teacher's {what} "
+                        f"({theirs}) differ from this run's ({ours})"
+                    )
+            if teacher.phase_head and not self.phase_head:
+                raise ValueError(
+                    f"distill_from: {self.distill.teacher}: the teacher has the phase head; "
+                    "train the student with head=phase (its batches then carry the calibration)"
+                )
+            object.__setattr__(self, "_teacher_net", teacher)
+        return self._teacher_net.to(self.device)
+
     def forward(self, inputs: torch.Tensor, calibration: torch.Tensor | None = None) -> dict:
         """``inputs``: the net's input, i.e. a batch's ``inputs`` (fringes plus the reference
         phase) when the data has them, else its normalized ``fringes``. ``calibration``: the
@@ -216,6 +245,12 @@ class FPPModule(L.LightningModule):
         terms = (
             self.adapt_terms(batch, out) if self.adapt else composite_loss(out, batch, self.weights)
         )
+        if self.distill is not None:
+            with torch.no_grad():
+                teacher_out = self._teacher().run(batch)
+            taught = distill_terms(out, teacher_out, self.distill)
+            terms |= {k: v for k, v in taught.items() if k != "loss"}
+            terms["loss"] = terms["loss"] + taught["loss"]
         if replay is not None:
             terms["replay"] = composite_loss(self.run(replay), replay, self.weights)["loss"]
             terms["loss"] = terms["loss"] + self.adapt.replay * terms["replay"]
@@ -385,6 +420,8 @@ class FPPModule(L.LightningModule):
         the last logged value of each metric) and the loggers' hparams.yaml; starts the clock
         of :meth:`train_seconds`."""
         self._fit_started = time.perf_counter()
+        if self.distill is not None:  # a teacher that cannot teach this net stops the run now
+            self._teacher()
         params = {
             **(self.hparams.run_info or {}),
             "views": ",".join(self.hparams.views or []),
@@ -411,6 +448,12 @@ def _add_hparams_session(logger: TensorBoardLogger, params: dict) -> None:
     writer = logger.experiment._get_file_writer()
     for summary in hparams(params, dict.fromkeys(HPARAM_METRICS, 0.0)):
         writer.add_summary(summary)
+
+
+def _input_keys(spec: dict | None) -> dict:
+    """What decides the net's input tensor (a teacher must read the student's)."""
+    spec = spec or {}
+    return {k: spec.get(k) for k in ("reference", "availability", "period_px", "quantity")}
 
 
 def net_input(batch: dict) -> torch.Tensor:
@@ -472,8 +515,8 @@ def load_module(ckpt_path: str | Path) -> FPPModule:
         # evaluated, predicted and exported eagerly and as a net of its own, however it was
         # trained (an adapted net's settings stay in its hyperparameters)
         hp = ckpt["hyper_parameters"]
-        module = FPPModule(**(hp | {"compile": None, "adapt": None}))
-        module.hparams["adapt"] = hp.get("adapt")
+        module = FPPModule(**(hp | {"compile": None, "adapt": None, "distill": None}))
+        module.hparams["adapt"], module.hparams["distill"] = hp.get("adapt"), hp.get("distill")
     except (TypeError, ValueError, hydra.errors.InstantiationException) as e:
         raise CheckpointError(f"{ckpt_path}: its net settings do not build a net ({e})") from None
     check_weights(ckpt_path, ckpt["state_dict"], module.state_dict())
