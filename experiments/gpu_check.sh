@@ -5,7 +5,7 @@
 # bf16-mixed and float32 from the same weights); the training step of the paper and paper_plus
 # presets at batch 2 in bf16-mixed (channels-last, with and without torch.compile, with
 # activation checkpointing for the paper preset's memory); inference latency at batch 1 and 8
-# (eager, compiled, ONNX Runtime); and a 200-step training of experiment=paper_plus on a small
+# (eager, compiled, ONNX Runtime) of the paper's net and of the light one; and a 200-step training of experiment=paper_plus on a small
 # rendered 480 px dataset with its loss curve. OUT/summary.txt lists each step's exit status and
 # seconds. Without CUDA it runs the same steps at a tiny size (32 px, a few steps, nothing
 # compiled: inductor takes minutes on this CPU) and says so.
@@ -82,6 +82,11 @@ runtimes=(eager)
 step infer "$py" experiments/bench_infer.py --preset "${presets[0]}" --device "$device" \
   --precision "$infer_precision" --batches "${batches[@]}" --runtimes "${runtimes[@]}" \
   --repeats "$([ "$tiny" = true ] && echo 2 || echo 20)" "${infer_size[@]}"
+# the light net for in-line inspection (docs/deploy.md), with the phase head, at 480 px
+step infer_lite "$py" experiments/bench_infer.py --preset mini --model odmvnet_lite \
+  --device "$device" --precision "$infer_precision" --batches "${batches[@]}" \
+  --runtimes "${runtimes[@]}" --repeats "$([ "$tiny" = true ] && echo 2 || echo 20)" \
+  --set head=phase "data.resolution=$resolution"
 
 data="$out/data-${resolution}px"
 step render "$py" -m odmv.simulate out="$data" scenes="$scenes" resolution="$resolution" \

@@ -2,6 +2,7 @@
 export."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
@@ -11,15 +12,19 @@ from helpers import compose_config, tiny_overrides
 from hydra.utils import instantiate
 
 from odmv.config import compose_train, model_configs
+from odmv.data.dataset import SampleSpec, load_scene
 from odmv.deploy.onnx import METADATA_KEY
 from odmv.export import export
 from odmv.io.exr import read_channel
+from odmv.io.manifest import load_manifest
 from odmv.models import ODMVNet, count_parameters
 from odmv.models.blocks import SeparableConv3d, set_separable
 from odmv.predict import predict
+from odmv.study.graphs import main as graphs_main
 from odmv.train import train
 from odmv.training.module import load_module
 
+DOCS = Path(__file__).resolve().parents[1] / "docs"
 LIGHT = [n for n, c in model_configs().items() if c.get("model", {}).get("max_parameters")]
 
 
@@ -79,7 +84,7 @@ def _student(tiny_dataset, out, teacher, *extra):
 
 @pytest.mark.slow
 def test_the_light_net_distils_exports_as_float32_and_int8_and_predicts(
-    teacher, tiny_dataset, tmp_path
+    teacher, tiny_dataset, tmp_path, capsys
 ):
     metrics = train(_student(tiny_dataset, tmp_path / "run", teacher))
     student = load_module(metrics["best_checkpoint"])
@@ -113,6 +118,25 @@ def test_the_light_net_distils_exports_as_float32_and_int8_and_predicts(
         (written,) = predict(predict_cfg)
         depth[precision] = read_channel(written["depth"], "Z")
     assert np.isfinite(depth["int8"]).all() and np.abs(depth["int8"] - depth["float32"]).mean() < 2
+
+    # the graphs scored on the test split: float32 as PyTorch, int8 beside it
+    capsys.readouterr()
+    assert graphs_main([metrics["best_checkpoint"], "--out", str(tmp_path / "graphs")]) == 0
+    row = capsys.readouterr().out.splitlines()[-1].split("|")
+    pytorch, float32, int8 = (float(row[k]) for k in (2, 3, 4))
+    assert float32 == pytest.approx(pytorch, abs=1e-4) and np.isfinite(int8)
+    assert pytorch == pytest.approx(metrics["test/mae_mm"], rel=1e-4)
+
+    # docs/deploy.md's consumer (ONNX Runtime and numpy) gives predict's depth
+    doc = (DOCS / "deploy.md").read_text().split("## 3. A consumer")[1]
+    code = doc.split("```python\n")[1].split("```")[0]
+    space = {}
+    exec(compile(code, "docs/deploy.md", "exec"), space)
+    views = list(student.hparams.views)
+    spec = SampleSpec(tuple(views), 32, 32, 1, student.hparams.input_spec["step"])
+    frames = load_scene(load_manifest(tiny_dataset), "000004", spec)["fringes"]
+    got = space["depth_mm"](frames, str(tmp_path / "onnx"))
+    np.testing.assert_allclose(got, depth["float32"], atol=1e-3)
 
 
 def test_a_teacher_that_reads_other_views_is_refused(teacher, tiny_dataset, tmp_path):

@@ -25,10 +25,12 @@ def test_the_gpu_check_runs_every_step_tiny_without_cuda(tmp_path):
     summary = (tmp_path / "summary.txt").read_text().splitlines()
     steps = [line.split()[0] for line in summary]
     assert steps == [
-        "environment", "bf16", "train_quickstart", "infer", "render", "train_steps", "loss_curve",
+        "environment", "bf16", "train_quickstart", "infer", "infer_lite", "render", "train_steps",
+        "loss_curve",
     ]  # fmt: skip
     assert all(" rc=0 " in line for line in summary)
     assert "bf16-mixed" in (tmp_path / "bf16.txt").read_text()
     assert "ms/frame p50" in (tmp_path / "infer.txt").read_text()
+    assert "odmvnet_lite" in (tmp_path / "infer_lite.txt").read_text()
     curve = (tmp_path / "loss_curve.txt").read_text().splitlines()
     assert [line.split()[:2] for line in curve] == [["step", "0"], ["step", "1"], ["step", "2"]]

@@ -47,18 +47,33 @@ class Predictor:
         )
         return torch.from_numpy(maps)[None]
 
+    def reference(self, rig: Rig) -> np.ndarray | None:
+        """The reference plane's phase (S x 2 x H x W: sin, cos) a net trained with it reads
+        beside each image (odmv.data.reference); None for others."""
+        spec = self.input_spec
+        if not reference_mode(spec.get("reference")):
+            return None
+        return reference_phase(
+            rig, self.views, *self.size, spec["period_px"], spec["step"], spec["n_steps"]
+        )
+
+    def rig_inputs(self, rig: Rig) -> dict[str, np.ndarray]:
+        """What the net reads from the rig alone, the same for every capture: ``reference``
+        and, with the phase head, ``calibration`` (S x 6 x H x W), where it reads them."""
+        maps = self.calibration(rig)
+        arrays = {"reference": self.reference(rig), "calibration": maps}
+        arrays["calibration"] = None if maps is None else maps[0].numpy()
+        return {k: v for k, v in arrays.items() if v is not None}
+
     def inputs(self, fringes: np.ndarray, rig: Rig, available=None) -> torch.Tensor:
         """The net's input (1 x C x H x W) from linear-intensity images (S x H x W);
         ``available`` (S, 0/1; None: all) marks missing views for a net trained with view
         dropout."""
         x = self.norm.fringes(torch.from_numpy(np.ascontiguousarray(fringes, np.float32)))
         spec = self.input_spec
-        mode = reference_mode(spec.get("reference"))
-        if mode:  # the reference-plane phase from the rig's calibration
-            ref = reference_phase(
-                rig, self.views, *self.size, spec["period_px"], spec["step"], spec["n_steps"]
-            )
-            x = network_input(x, torch.from_numpy(ref), mode)
+        ref = self.reference(rig)
+        if ref is not None:
+            x = network_input(x, torch.from_numpy(ref), reference_mode(spec.get("reference")))
         if spec.get("availability"):  # a net trained with view dropout
             flags = torch.ones(len(self.views)) if available is None else torch.as_tensor(available)
             x = with_availability(x, flags.float())

@@ -319,9 +319,13 @@ class OcclusionAwareFusion(nn.Module):
     adds to the blend's logits to ±bound (a scaled tanh), so the attention can change one
     view's weight against another's by at most exp(2 * bound) and the mask, not the attention,
     decides where they disagree: unbounded, learned logits can cancel the log-mask.
+    ``kernel``: the spatial attention's (views, height, width) extent (CBAM's 7 x 7 in space;
+    the light net's 3 x 3 x 3 runs 5x faster at 480 px in ONNX Runtime).
     """
 
-    def __init__(self, ch: int, reduction: int = 8, bound: float | None = None):
+    def __init__(
+        self, ch: int, reduction: int = 8, bound: float | None = None, kernel=(3, 7, 7)
+    ):
         super().__init__()
         if bound is not None and not bound > 0:
             raise ValueError(f"fusion_bound {bound}: a positive logit bound, or null")
@@ -330,7 +334,8 @@ class OcclusionAwareFusion(nn.Module):
         self.mlp = nn.Sequential(
             nn.Linear(ch, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, ch)
         )
-        self.spatial = Conv3d(2, 1, (3, 7, 7), padding=(1, 3, 3))
+        k = tuple(kernel)
+        self.spatial = Conv3d(2, 1, k, padding=tuple(n // 2 for n in k))
 
     def logit_layers(self) -> list[nn.Module]:
         return [self.mlp[-1], self.spatial]

@@ -178,7 +178,8 @@ class ODMVNet(nn.Module):
     ``gate_init``: None (PyTorch's initialisation) or "neutral", every gate starting uniform
     (:func:`odmv.models.blocks.set_gate_init`). ``fusion_bound``: None (the paper) or the
     bound on the attention's share of the fusion's blend logits
-    (:class:`odmv.models.blocks.OcclusionAwareFusion`). ``availability`` (beyond the paper;
+    (:class:`odmv.models.blocks.OcclusionAwareFusion`); ``fusion_kernel`` its spatial
+    attention's extent. ``availability`` (beyond the paper;
     None: off): the input carries each view's availability after its channels
     (:mod:`odmv.data.views`); a missing view's input is zeroed and the fusion gives it no
     weight, so its images cannot move the depth. ``head`` (beyond the paper): "depth" (None,
@@ -211,6 +212,7 @@ class ODMVNet(nn.Module):
         full_width: int | None = None,
         gate_init: str | None = None,
         fusion_bound: float | None = None,
+        fusion_kernel: tuple[int, int, int] = (3, 7, 7),
         availability: bool | None = None,
         head: str | None = None,
         orders: int | None = None,
@@ -281,7 +283,9 @@ class ODMVNet(nn.Module):
         # output heads Main, Aux1, Aux2: the channels of the stages they read
         head_ch = [w[0], w[1], w[2]] if stem_stride == 1 else [fw, w[0], w[1]]
         self.fusion = (
-            nn.ModuleList(OcclusionAwareFusion(c, bound=fusion_bound) for c in head_ch)
+            nn.ModuleList(
+                OcclusionAwareFusion(c, bound=fusion_bound, kernel=fusion_kernel) for c in head_ch
+            )
             if ocd_oaf
             else None
         )

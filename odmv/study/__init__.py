@@ -16,4 +16,5 @@ VERBS = {
     "symmetry": "symmetry",
     "phase": "phase",
     "captures": "captures",
+    "graphs": "graphs",
 }

@@ -121,7 +121,7 @@ def sweep_overrides(protocol: str, table: str, extra: list[str]) -> list[list[st
 
 
 #: net settings added after rows were trained, with the value that builds the net as before
-NET_SETTINGS_BEFORE = {"separable": False, "levels": 4}
+NET_SETTINGS_BEFORE = {"separable": False, "levels": 4, "fusion_kernel": [3, 7, 7]}
 
 
 def _run_key(cfg: DictConfig) -> str:
