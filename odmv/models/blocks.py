@@ -323,9 +323,7 @@ class OcclusionAwareFusion(nn.Module):
     the light net's 3 x 3 x 3 runs 5x faster at 480 px in ONNX Runtime).
     """
 
-    def __init__(
-        self, ch: int, reduction: int = 8, bound: float | None = None, kernel=(3, 7, 7)
-    ):
+    def __init__(self, ch: int, reduction: int = 8, bound: float | None = None, kernel=(3, 7, 7)):
         super().__init__()
         if bound is not None and not bound > 0:
             raise ValueError(f"fusion_bound {bound}: a positive logit bound, or null")
