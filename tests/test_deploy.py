@@ -128,7 +128,7 @@ def test_the_light_net_distils_exports_as_float32_and_int8_and_predicts(
     assert pytorch == pytest.approx(metrics["test/mae_mm"], rel=1e-4)
 
     # docs/deploy.md's consumer (ONNX Runtime and numpy) gives predict's depth
-    doc = (DOCS / "deploy.md").read_text().split("## 3. A consumer")[1]
+    doc = (DOCS / "deploy.md").read_text().split("A consumer: ONNX Runtime and numpy")[1]
     code = doc.split("```python\n")[1].split("```")[0]
     space = {}
     exec(compile(code, "docs/deploy.md", "exec"), space)
