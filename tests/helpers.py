@@ -51,6 +51,19 @@ def compose_config(name, overrides):
         return compose(name, overrides=overrides)
 
 
+def predicted_depth(model, scene, out):
+    """odmv.predict of ``model`` (a checkpoint or ONNX file) on one ``scene`` into ``out``:
+    the depth map it wrote (mm)."""
+    from odmv.io.exr import read_channel
+    from odmv.predict import predict
+
+    cfg = compose_config(
+        "predict", [f"ckpt_path={model}", f"input={scene}", f"out={out}", f"paths.output_dir={out}"]
+    )
+    (written,) = predict(cfg)
+    return read_channel(written["depth"], "Z")
+
+
 def calibration_of(rig, size):
     """The default rig written as an OpenCV-style calibration (pixel centres at integers)."""
     from odmv.io.calibration import _WORLD_TO_CAMERA

@@ -8,18 +8,16 @@ import numpy as np
 import onnxruntime as ort
 import pytest
 import torch
-from helpers import compose_config, tiny_overrides
+from helpers import compose_config, predicted_depth, tiny_overrides
 from hydra.utils import instantiate
 
 from odmv.config import compose_train, model_configs
 from odmv.data.dataset import SampleSpec, load_scene
 from odmv.deploy.onnx import METADATA_KEY
 from odmv.export import export
-from odmv.io.exr import read_channel
 from odmv.io.manifest import load_manifest
 from odmv.models import ODMVNet, count_parameters
 from odmv.models.blocks import SeparableConv3d, set_separable
-from odmv.predict import predict
 from odmv.study.graphs import main as graphs_main
 from odmv.train import train
 from odmv.training.module import load_module
@@ -110,13 +108,7 @@ def test_the_light_net_distils_exports_as_float32_and_int8_and_predicts(
         session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
         meta = json.loads(session.get_modelmeta().custom_metadata_map[METADATA_KEY])
         assert meta["precision"] == precision and meta["views"] == student.hparams.views
-        predict_cfg = compose_config(
-            "predict",
-            [f"ckpt_path={path}", f"input={scene}", f"out={tmp_path / precision}"]
-            + [f"paths.output_dir={tmp_path}"],
-        )
-        (written,) = predict(predict_cfg)
-        depth[precision] = read_channel(written["depth"], "Z")
+        depth[precision] = predicted_depth(path, scene, tmp_path / precision)
     assert np.isfinite(depth["int8"]).all() and np.abs(depth["int8"] - depth["float32"]).mean() < 2
 
     # the graphs scored on the test split: float32 as PyTorch, int8 beside it

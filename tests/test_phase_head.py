@@ -9,7 +9,7 @@ import numpy as np
 import onnxruntime as ort
 import pytest
 import torch
-from helpers import RIG, compose_config, tiny_overrides
+from helpers import RIG, compose_config, predicted_depth, tiny_overrides
 
 from odmv.classical.fringe import triangulate_depth
 from odmv.classical.geometry import depth_from_offset, triangulation_maps
@@ -18,7 +18,6 @@ from odmv.deploy.onnx import METADATA_KEY, export_onnx
 from odmv.io.exr import read_channel
 from odmv.io.manifest import load_manifest
 from odmv.models.phase import lowest_order, view_depths
-from odmv.predict import predict
 from odmv.rig import VIEW_NAMES
 from odmv.train import train
 from odmv.training.evaluation import evaluate
@@ -150,13 +149,7 @@ def test_a_phase_head_net_evaluates_predicts_and_exports(model, phase_runs, tiny
     scene = tiny_dataset / "scenes" / "000004"
     depths = {}
     for name, model in (("ckpt", ckpt), ("onnx", path)):
-        cfg = compose_config(
-            "predict",
-            [f"ckpt_path={model}", f"input={scene}", f"out={tmp_path / name}"]
-            + [f"paths.output_dir={tmp_path}"],
-        )
-        (written,) = predict(cfg)
-        depths[name] = read_channel(written["depth"], "Z")
+        depths[name] = predicted_depth(model, scene, tmp_path / name)
         weights = [read_channel(tmp_path / name / "weights.exr", c) for c in (*views, "regressed")]
         np.testing.assert_allclose(np.sum(weights, 0), 1.0, atol=1e-5)
     assert np.abs(depths["onnx"] - depths["ckpt"]).max() < 1e-3

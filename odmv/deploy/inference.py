@@ -61,8 +61,9 @@ class Predictor:
         """What the net reads from the rig alone, the same for every capture: ``reference``
         and, with the phase head, ``calibration`` (S x 6 x H x W), where it reads them."""
         maps = self.calibration(rig)
-        arrays = {"reference": self.reference(rig), "calibration": maps}
-        arrays["calibration"] = None if maps is None else maps[0].numpy()
+        arrays = {"reference": self.reference(rig), "calibration": None}
+        if maps is not None:
+            arrays["calibration"] = maps[0].numpy()
         return {k: v for k, v in arrays.items() if v is not None}
 
     def inputs(self, fringes: np.ndarray, rig: Rig, available=None) -> torch.Tensor:
@@ -85,7 +86,11 @@ def load_predictor(path: str | Path) -> Predictor:
     on CUDA where available)."""
     if Path(path).suffix == ".onnx":
         return _onnx_predictor(Path(path))
-    module = load_module(path).eval()
+    return module_predictor(load_module(path).eval())
+
+
+def module_predictor(module) -> Predictor:
+    """A trained module (eval mode) run by PyTorch as a :class:`Predictor`."""
 
     def run(x: torch.Tensor, calibration: torch.Tensor | None = None) -> dict:
         with torch.no_grad():

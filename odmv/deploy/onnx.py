@@ -114,40 +114,26 @@ def example_inputs(module: FPPModule) -> tuple[torch.Tensor, torch.Tensor | None
     return example, maps
 
 
-def trained_module(ckpt_path: str | Path) -> FPPModule:
-    """The checkpoint's module in eval mode, refused if it was never trained."""
-    module = load_module(ckpt_path).eval()
-    if module.norm is None or not module.hparams.views:
-        raise ValueError(
-            f"{ckpt_path}: the checkpoint has no normalization or views (not trained?)"
-        )
-    return module
-
-
-def module_graph(module: FPPModule, ckpt_path):
-    """The float32 ONNX ModelProto of ``module`` in mm (:class:`DepthInMM`) with its ``odmv``
-    metadata."""
-    example, maps = example_inputs(module)
-    model = export_graph(DepthInMM(module).eval(), example, maps)
-    entry = model.metadata_props.add()
-    meta = metadata(module, ckpt_path) | {"precision": "float32"}
-    entry.key, entry.value = METADATA_KEY, json.dumps(meta)
-    return model
-
-
 def export_onnx(ckpt_path: str | Path, out_dir: str | Path) -> tuple[Path, float]:
     """Write ``out_dir/model.onnx``; returns its path and the largest difference (mm) between
     ONNX Runtime and PyTorch on two random inputs (a check, printed by the app)."""
     import onnx
     import onnxruntime as ort
 
-    module = trained_module(ckpt_path)
+    module = load_module(ckpt_path).eval()
+    if module.norm is None or not module.hparams.views:
+        raise ValueError(
+            f"{ckpt_path}: the checkpoint has no normalization or views (not trained?)"
+        )
     wrapper = DepthInMM(module).eval()
     example, maps = example_inputs(module)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "model.onnx"
-    model = module_graph(module, ckpt_path)
+    model = export_graph(wrapper, example, maps)
+    entry = model.metadata_props.add()
+    meta = metadata(module, ckpt_path) | {"precision": "float32"}
+    entry.key, entry.value = METADATA_KEY, json.dumps(meta)
     write_atomic(path, lambda tmp: onnx.save(model, str(tmp)))
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     feed = {"inputs": example.numpy()}

@@ -17,12 +17,11 @@ import json
 import tempfile
 from pathlib import Path
 
-import hydra
 import numpy as np
 
 from odmv.deploy.onnx import METADATA_KEY
 from odmv.io.atomic import write_atomic
-from odmv.training.evaluation import read_only
+from odmv.training.evaluation import checkpoint_datamodule
 from odmv.training.module import batched, load_module, net_input
 
 PRECISIONS = ("float32", "int8")
@@ -32,25 +31,25 @@ PRECISIONS = ("float32", "int8")
 INT8_OPS = ("Conv", "ConvTranspose")
 
 
-def scene_feeds(ckpt_path: str | Path, splits: tuple[str, ...], n: int) -> list[dict]:
-    """The graph's inputs for up to ``n`` scenes of the first of ``splits`` that the run's
-    dataset holds (read as the run read it)."""
+def scene_feeds(ckpt_path: str | Path, n: int) -> dict[str, list[dict]]:
+    """The graph's inputs for up to ``n`` scenes of the run's dataset (read as the run read
+    it): ``check`` from its validation split (else test), ``calibration`` from its training
+    split."""
     module = load_module(ckpt_path).eval()
-    data = read_only(module.hparams.data_cfg, views=list(module.hparams.views), augment=None)
-    dm = hydra.utils.instantiate(data, _convert_="all")
-    dm.prepare_data()
-    dm.setup(None)
-    split = next((s for s in splits if len(dm.datasets.get(s) or ())), None)
-    if split is None:
-        raise ValueError(f"{ckpt_path}: its dataset holds no {' or '.join(splits)} scenes")
-    ds = dm.datasets[split]
-    feeds = []
-    for i in range(min(n, len(ds))):
-        sample = batched(ds[i])
-        feed = {"inputs": net_input(sample).numpy()}
-        if module.phase_head:
-            feed["calibration"] = sample["calibration"].numpy()
-        feeds.append(feed)
+    dm = checkpoint_datamodule(module, None, augment=None)
+    feeds = {}
+    for use, splits in (("check", ("val", "test")), ("calibration", ("train",))):
+        split = next((s for s in splits if len(dm.datasets.get(s) or ())), None)
+        if split is None:
+            raise ValueError(f"{ckpt_path}: its dataset holds no {' or '.join(splits)} scenes")
+        ds = dm.datasets[split]
+        feeds[use] = []
+        for i in range(min(n, len(ds))):
+            sample = batched(ds[i])
+            feed = {"inputs": net_input(sample).numpy()}
+            if module.phase_head:
+                feed["calibration"] = sample["calibration"].numpy()
+            feeds[use].append(feed)
     return feeds
 
 
@@ -117,22 +116,16 @@ def check_precisions(precisions) -> None:
 def export_precisions(
     ckpt_path: str | Path, float32_path: Path, precisions, scenes: int = 16
 ) -> dict[str, tuple[Path, float, float]]:
-    """Write ``model.<precision>.onnx`` beside the float32 graph for each of ``precisions``
-    beyond float32 (int8); returns {precision: (path, mean mm, max mm against float32)}."""
+    """Write ``model.int8.onnx`` beside the float32 graph where ``precisions`` name int8;
+    returns {precision: (path, mean mm, max mm against float32)} of what it wrote."""
     import onnx
 
     check_precisions(precisions)
-    wanted = [p for p in precisions if p != "float32"]
-    if not wanted:
+    if "int8" not in precisions:
         return {}
-    source = onnx.load(str(float32_path))
-    checks = scene_feeds(ckpt_path, ("val", "test"), scenes)
-    calibration = scene_feeds(ckpt_path, ("train",), scenes)
-    written = {}
-    for precision in wanted:
-        model = int8_model(float32_path, calibration)
-        path = float32_path.with_name(f"model.{precision}.onnx")
-        model = _with_metadata(model, source, precision)
-        write_atomic(path, lambda tmp, m=model: onnx.save(m, str(tmp)))
-        written[precision] = (path, *depth_difference_mm(float32_path, path, checks))
-    return written
+    feeds = scene_feeds(ckpt_path, scenes)
+    model = int8_model(float32_path, feeds["calibration"])
+    model = _with_metadata(model, onnx.load(str(float32_path)), "int8")
+    path = float32_path.with_name("model.int8.onnx")
+    write_atomic(path, lambda tmp: onnx.save(model, str(tmp)))
+    return {"int8": (path, *depth_difference_mm(float32_path, path, feeds["check"]))}

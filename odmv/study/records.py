@@ -7,12 +7,11 @@ from __future__ import annotations
 import glob
 from pathlib import Path
 
-import hydra
 import numpy as np
 
 from odmv.config import CONF_DIR  # noqa: F401  (registers the config resolvers)
 from odmv.training.checkpoint import best_checkpoint
-from odmv.training.evaluation import read_only
+from odmv.training.evaluation import checkpoint_datamodule
 from odmv.training.module import load_module
 
 
@@ -28,11 +27,7 @@ def checkpoint_data(path: Path, stage: str | None, views: list[str] | None = Non
     checkpoint raises CheckpointError naming it."""
     module = load_module(path).eval()
     views = list(module.hparams.views) if views is None else views
-    data = read_only(module.hparams.data_cfg, views=views)
-    dm = hydra.utils.instantiate(data, _convert_="all")
-    dm.prepare_data()
-    dm.setup(stage)
-    return module, dm
+    return module, checkpoint_datamodule(module, stage, views=views)
 
 
 def run_groups(arg: str, marker: str) -> tuple[str, list[Path]]:

@@ -35,6 +35,16 @@ def read_only(data: dict, **changes) -> dict:
     return {**data, **quiet, **changes}
 
 
+def checkpoint_datamodule(module, stage: str | None, **changes):
+    """The data module that reads a trained module's dataset as it was trained (:func:`read_only`,
+    ``changes`` on top), set up for ``stage`` (None: every split)."""
+    data = read_only(module.hparams.data_cfg, **{"views": list(module.hparams.views), **changes})
+    dm = hydra.utils.instantiate(data, _convert_="all")
+    dm.prepare_data()
+    dm.setup(stage)
+    return dm
+
+
 def constant_predictor_errors(dm, value_mm: float) -> dict[str, float]:
     """Errors of predicting one depth everywhere (the mean training depth)."""
     metric = DepthErrors()
