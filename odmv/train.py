@@ -36,9 +36,9 @@ from odmv.io.runfolder import CONFIG, METRICS, portable, portable_record
 from odmv.training.adaptation import check_calibration, view_offsets
 from odmv.training.checkpoint import (
     AtomicCheckpointIO,
-    best_checkpoint,
     check_fits,
     check_weights,
+    checkpoint_path,
     initial_weights,
     read_checkpoint,
 )
@@ -128,9 +128,7 @@ def distill_settings(cfg: DictConfig) -> dict | None:
     source = cfg.get("distill_from")
     if not source:
         return None
-    path = Path(source)
-    if path.is_dir():
-        path = best_checkpoint(path)[0]
+    path = checkpoint_path(source)
     if not path.is_file():
         raise ValueError(f"distill_from: {source}: no such checkpoint or run folder")
     return OmegaConf.to_container(cfg.distill, resolve=True) | {"teacher": str(path.resolve())}
@@ -187,7 +185,7 @@ def adapted_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
     saved = run / ".hydra" / "config.yaml" if run is not None else None
     if saved is None or not saved.is_file():
         raise ValueError(f"init_from: {source}: not a run folder (no .hydra/config.yaml)")
-    ckpt = best_checkpoint(source)[0] if source.is_dir() else source
+    ckpt = checkpoint_path(source)
     root = cfg.get("root")
     if not root:
         raise ValueError("adapt: root=DATASET names the fringe images to adapt to")

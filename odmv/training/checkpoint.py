@@ -74,14 +74,18 @@ def best_checkpoint(run: Path) -> tuple[Path, dict]:
     return ckpt, metrics
 
 
+def checkpoint_path(source: str | Path) -> Path:
+    """A checkpoint named directly, or a finished run folder's best checkpoint."""
+    path = Path(source)
+    return best_checkpoint(path)[0] if path.is_dir() else path
+
+
 def initial_weights(source: str | Path, current: dict) -> dict:
     """The weights a run starts from (``init_from``): those of checkpoint ``source``, or of a
     finished run folder's best checkpoint, checked to fit the net's ``current`` state dict by
     name and shape. Other settings may differ (a fine-tune changes data, views available or
     epochs); its epoch, optimizer and scheduler state are not taken."""
-    path = Path(source)
-    if path.is_dir():
-        path = best_checkpoint(path)[0]
+    path = checkpoint_path(source)
     ckpt = read_checkpoint(path)
     check_weights(path, ckpt["state_dict"], current)
     return ckpt["state_dict"]
