@@ -99,6 +99,22 @@ def test_the_loss_is_least_at_the_true_depth_and_pulls_back_to_it(clean_scenes, 
     assert back[2] > 0.8 and back[3] > 0.8
 
 
+def test_the_fit_with_harmonics_reads_a_gamma_distorted_fringe():
+    """Projector gamma 2.2 turns the fringe into a sum of harmonics. Inside a window the
+    second leaks into a sinusoid fit's phase (0.2 rad at 5 px); fitted too, it does not."""
+    y, x = torch.meshgrid(torch.arange(64.0), torch.arange(64.0), indexing="ij")
+    phase = (2 * torch.pi * x / 10.3 + 0.002 * (y - 32) ** 2)[None, None]
+    image = 0.1 + 0.8 * ((1 + torch.cos(phase)) / 2) ** 2.2
+    inner = (..., slice(8, -8), slice(8, -8))  # away from the border's smaller windows
+    sinusoid_fit = fringe_fit(image, phase, 5)[0][inner].abs().median()
+    harmonic_fit = fringe_fit(image, phase, 9, harmonics=2)[0][inner].abs().median()
+    assert sinusoid_fit > 0.1 and harmonic_fit < 0.005  # rad
+    undistorted = 0.1 + 0.4 * (1 + torch.cos(phase))
+    assert fringe_fit(undistorted, phase, 9, harmonics=2)[0][inner].abs().max() < 1e-4
+    with pytest.raises(ValueError, match="harmonics: 2 .* window_px is 3"):
+        ConsistencySettings(window_px=3, harmonics=2)
+
+
 def test_a_turned_projector_makes_the_views_disagree(clean_scenes, tmp_path):
     """At the true depth through the nominal calibration, the views of the nominal twin ask
     for the same (no) change; with the projectors turned by 0.1 degree after calibrating they

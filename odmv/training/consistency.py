@@ -3,16 +3,17 @@
 A depth map, through the calibrated rig (odmv.classical.geometry), predicts the phase of every
 view's fringe at every pixel. The image carries the true phase: I = A + B cos(phi) with an
 offset A and an amplitude B that albedo, shading, ambient light and defocus set per pixel. In a
-small window around each pixel the image is fitted, in closed form (least squares), as
-A + a cos(phi_d) + b sin(phi_d) with phi_d the depth's phase: the fringe re-rendered from the
-depth with its offset and amplitude fitted, i.e. the image demodulated with the depth's own
-phase as the carrier. Its phase e = atan2(-b, a) is what the depth gets wrong, at the window's
-resolution; the loss is the circular distance 1 - cos(e) over every view, so one depth must
-explain all of them where two or more projectors light a pixel. It is zero at the true depth
-of a noise-free scene whose offset and amplitude are constant over each window, rises with a
-depth offset as 1 - cos(2 pi offset / P) in the projector, and sees the fringe order only
-modulo a period (about 11 mm of height on the twin): it refines a depth that is right to
-within half a period; it cannot find the order.
+small window around each pixel the image is fitted, in closed form (least squares), as A + a
+cos(phi_d) + b sin(phi_d) with phi_d the depth's phase: the fringe re-rendered from the depth
+with its offset and amplitude fitted, i.e. the image demodulated with the depth's own phase as
+the carrier. Its phase e = atan2(-b, a) is what the depth gets wrong, at the window's
+resolution (``harmonics`` 2 adds cos(2 phi_d) and sin(2 phi_d) to the fit, for fringes that
+projector gamma or gloss made other than a sinusoid); the loss is the circular distance 1 -
+cos(e) over every view, so one depth must explain all of them where two or more projectors
+light a pixel. It is zero at the true depth of a noise-free scene whose offset and amplitude
+are constant over each window, rises with a depth offset as 1 - cos(2 pi offset / P) in the
+projector, and sees the fringe order only modulo a period (about 11 mm of height on the twin):
+it refines a depth that is right to within half a period; it cannot find the order.
 
 Each pixel's weight (no gradient) is the fitted amplitude sqrt(a^2 + b^2) (none below
 ``min_amplitude``: shadow, no fringe) times the fit's R^2 to the power ``quality_power``: the
@@ -45,13 +46,16 @@ class ConsistencySettings:
     the camera: 5 at 64 px, where a period spans about 10 px). ``min_amplitude``: the fitted
     amplitude (linear intensity) below which a pixel carries no weight. ``quality_power``: the
     exponent of the fit's R^2 in the weight. ``anchor``: the trust region's weight per mm of
-    mean absolute change from the starting net. ``stale_mm``: the spread (std, mm) of the
+    mean absolute change from the starting net. ``harmonics``: the fringe's harmonics in the
+    fit (1: a sinusoid; 2 takes up a fringe distorted by projector gamma or gloss, and wants a
+    window of about a fringe period: 9 px at 64 px). ``stale_mm``: the spread (std, mm) of the
     views' mean asked-for depth changes above which the calibration is taken to be stale
     (:func:`view_offsets_mm`). ``replay``: the weight of the starting net's own loss on
     batches of its own (labelled) training scenes, beside every batch of the user's: what it
     knew of the twin is kept (0: none)."""
 
     window_px: int = 5
+    harmonics: int = 1
     min_amplitude: float = 0.02
     quality_power: float = 4.0
     anchor: float = 0.02
@@ -60,10 +64,15 @@ class ConsistencySettings:
 
     def __post_init__(self):
         if self.window_px < 3 or self.window_px % 2 == 0:
-            raise ValueError(f"adapt.window_px: {self.window_px} must be odd and at least 3")
+            raise ValueError(f"adaptation.window_px: {self.window_px} must be odd and at least 3")
+        if self.harmonics < 1 or self.window_px < 2 * self.harmonics + 1:
+            raise ValueError(
+                f"adaptation.harmonics: {self.harmonics} must be at least 1, with window_px at "
+                f"least 2 x harmonics + 1 (the fit's unknowns; window_px is {self.window_px})"
+            )
         for key in ("min_amplitude", "quality_power", "anchor", "stale_mm", "replay"):
             if getattr(self, key) < 0:
-                raise ValueError(f"adapt.{key}: {getattr(self, key)} must be >= 0")
+                raise ValueError(f"adaptation.{key}: {getattr(self, key)} must be >= 0")
 
     @classmethod
     def of(cls, values: dict) -> ConsistencySettings:
@@ -77,30 +86,39 @@ def _box(x: torch.Tensor, k: int) -> torch.Tensor:
 
 
 def fringe_fit(
-    fringes: torch.Tensor, phase_rad: torch.Tensor, window_px: int
+    fringes: torch.Tensor, phase_rad: torch.Tensor, window_px: int, harmonics: int = 1
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The windowed least-squares fit of each view's image (B x S x H x W, linear intensity)
-    as A + a cos(phase) + b sin(phase) -> (its phase e = atan2(-b, a) in rad, the amplitude
-    sqrt(a^2 + b^2), the fit's R^2 in [0, 1]), each B x S x H x W; differentiable in
-    ``phase_rad``. Runs in float32."""
+    as A + sum over k = 1..``harmonics`` of a_k cos(k phase) + b_k sin(k phase) -> (its
+    fundamental's phase e = atan2(-b_1, a_1) in rad, its amplitude sqrt(a_1^2 + b_1^2), the
+    fit's R^2 in [0, 1]), each B x S x H x W; differentiable in ``phase_rad``. The harmonics
+    take up what a fringe that is not a sinusoid (projector gamma, gloss) would otherwise
+    leak into the fundamental's phase inside a window. Runs in float32."""
     with torch.autocast(fringes.device.type, enabled=False):
         image, phase = fringes.float(), phase_rad.float()
-        c, s = torch.cos(phase), torch.sin(phase)
         k = window_px
-        mc, ms, mi = _box(c, k), _box(s, k), _box(image, k)
-        cc = _box(c * c, k) - mc * mc
-        ss = _box(s * s, k) - ms * ms
-        cs = _box(c * s, k) - mc * ms
-        ci = _box(c * image, k) - mc * mi
-        si = _box(s * image, k) - ms * mi
+        basis = [f(n * phase) for n in range(1, harmonics + 1) for f in (torch.cos, torch.sin)]
+        means = [_box(x, k) for x in basis]
+        mi = _box(image, k)
+        # the centred normal equations, damped where the phase barely varies
+        n = len(basis)
+        normal = torch.stack(
+            [
+                _box(basis[i] * basis[j], k) - means[i] * means[j]
+                for i in range(n)
+                for j in range(n)
+            ],
+            -1,
+        ).unflatten(-1, (n, n))
+        moments = torch.stack(
+            [_box(x * image, k) - m * mi for x, m in zip(basis, means, strict=True)], -1
+        )
+        eye = torch.eye(n, device=image.device)
+        coef = torch.linalg.solve(normal + 1e-6 * eye, moments.unsqueeze(-1)).squeeze(-1)
         ii = _box(image * image, k) - mi * mi
-        # the centred 2 x 2 normal equations; damped where the phase barely varies
-        det = cc * ss - cs * cs + 1e-6
-        a = (ss * ci - cs * si) / det
-        b = (cc * si - cs * ci) / det
-        amplitude = torch.sqrt(a * a + b * b + 1e-12)
-        r2 = ((a * ci + b * si) / ii.clamp_min(1e-9)).clamp(0, 1)
-        return torch.atan2(-b, a), amplitude, r2
+        r2 = ((coef * moments).sum(-1) / ii.clamp_min(1e-9)).clamp(0, 1)
+        a, b = coef[..., 0], coef[..., 1]
+        return torch.atan2(-b, a), torch.sqrt(a * a + b * b + 1e-12), r2
 
 
 def _weights(amplitude, r2, settings: ConsistencySettings, available=None) -> torch.Tensor:
@@ -122,7 +140,7 @@ def consistency_loss(
     ``weighted`` (the share of view pixels with weight). ``available`` (B x S or None): a
     missing view carries no weight."""
     phase = phase_from_depth(depth_mm.float(), maps.float())
-    error, amplitude, r2 = fringe_fit(fringes, phase, settings.window_px)
+    error, amplitude, r2 = fringe_fit(fringes, phase, settings.window_px, settings.harmonics)
     weight = _weights(amplitude, r2, settings, available)
     total = weight.sum().clamp_min(1e-12)
     loss = (weight * (1 - torch.cos(error))).sum() / total
@@ -141,7 +159,7 @@ def view_corrections_mm(
     with torch.no_grad():
         depth_mm, maps = depth_mm.float(), maps.float()
         phase = phase_from_depth(depth_mm, maps)
-        error, amplitude, r2 = fringe_fit(fringes, phase, settings.window_px)
+        error, amplitude, r2 = fringe_fit(fringes, phase, settings.window_px, settings.harmonics)
         delta = offset_from_depth(depth_mm, maps)
         # d depth / d offset of depth = ref + delta g / (1 - delta h)
         slope = maps[:, :, 3] / (1 - delta * maps[:, :, 4]) ** 2

@@ -1,0 +1,64 @@
+"""What the label-free loss asks of the true depth: on twin scenes (which have it), the depth
+change (mm) each view's fringe fit asks for at the truth, for several fits. A fit whose
+optimum is the truth asks for nothing; what it asks for there, it teaches a net that adapts
+with it (odmv/training/consistency.py, experiments/results/adapt/notebook.md).
+
+    python experiments/fit_bias.py data/adapt100-seed3-gamma_2.2-* --scenes 24 \
+        --fits 5:1 7:1 9:1 7:2 9:2
+
+Per dataset and fit (window px : harmonics): each view's weighted mean asked-for change (the
+bias: what moves a whole view), the weighted mean of its magnitude (what pulls each pixel),
+and the share of view pixels with weight.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import torch
+
+from odmv.classical.geometry import triangulation_maps
+from odmv.data.dataset import check_spec, load_scene
+from odmv.io.manifest import load_manifest
+from odmv.training.consistency import ConsistencySettings, view_corrections_mm
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("datasets", nargs="+", help="twin dataset folders (with depth)")
+    p.add_argument("--scenes", type=int, default=24, help="the first N scenes of each")
+    p.add_argument("--size", type=int, default=64, help="image size (px)")
+    p.add_argument("--fits", nargs="+", default=["5:1", "9:1", "9:2"], help="WINDOW:HARMONICS")
+    a = p.parse_args()
+    torch.set_num_threads(1)
+    for root in a.datasets:
+        m = load_manifest(root)
+        spec = check_spec(m, m.views, a.size, None, None)
+        maps = triangulation_maps(
+            m.rig, m.views, a.size, a.size, spec.period_px, spec.step, spec.n_steps
+        )
+        maps = torch.from_numpy(maps)[None]
+        scenes = [load_scene(m, s["id"], spec) for s in m.scenes[: a.scenes]]
+        fringes = torch.from_numpy(np.stack([s["fringes"] for s in scenes]))
+        truth = torch.from_numpy(np.stack([s["depth_mm"] for s in scenes]))
+        known = torch.isfinite(truth)
+        truth = torch.where(known, truth, truth.nanmean())
+        for fit in a.fits:
+            window, harmonics = (int(x) for x in fit.split(":"))
+            settings = ConsistencySettings(window_px=window, harmonics=harmonics)
+            batch_maps = maps.expand(len(scenes), -1, -1, -1, -1)
+            change, w = view_corrections_mm(truth, fringes, batch_maps, settings)
+            w = w * known  # pixels without a true depth carry no weight
+            bias = (w * change).sum((0, 2, 3)) / w.sum((0, 2, 3))
+            pull = float((w * change.abs()).sum() / w.sum())
+            views = ", ".join(f"{v} {float(b):+.4f}" for v, b in zip(m.views, bias, strict=True))
+            print(
+                f"{root}  window {window} harmonics {harmonics}: bias {views} mm; "
+                f"mean |change| {pull:.4f} mm; weighted {float((w > 0).float().mean()):.2f}",
+                flush=True,
+            )
+
+
+if __name__ == "__main__":
+    main()
