@@ -32,6 +32,7 @@ from odmv.cli import (
     tool,
 )
 from odmv.io.atomic import write_json, write_text
+from odmv.io.manifest import MANIFEST
 from odmv.io.runfolder import CONFIG, METRICS, portable, portable_record
 from odmv.training.adaptation import check_calibration, view_offsets
 from odmv.training.checkpoint import (
@@ -198,6 +199,12 @@ def adapted_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
     data |= {"calibration": True, "val_from_train": a.val_share}  # the loss needs the maps
     if a.replay and not a.supervised:  # the run's own training scenes, as it read them
         own = OmegaConf.to_container(out.data, resolve=True) | {"calibration": True}
+        if not (Path(own["root"]) / MANIFEST).is_file():
+            raise ValueError(
+                f"adaptation.replay: {own['root']}: the twin that {run} was trained on is not "
+                "here (no manifest.json); render it again, or adaptation.replay=0 to adapt "
+                "without it"
+            )
         data["replay"] = {k: v for k, v in own.items() if k != "_target_"} | {"render": False}
     OmegaConf.update(out, "data", data, merge=True)
     out.root = data["root"]

@@ -240,6 +240,28 @@ def test_adapt_replays_the_twin_it_was_trained_on(base_run, unlabelled, tmp_path
     assert replay and all(np.isfinite(replay))
 
 
+def test_adapt_without_the_twin_to_replay_says_so(base_run, unlabelled, tmp_path):
+    """Replay is on by default; where the base run's training data is gone, one line says what
+    is missing and how to adapt without it."""
+    from omegaconf import OmegaConf
+
+    run = shutil.copytree(base_run, tmp_path / "moved")
+    saved = OmegaConf.load(run / ".hydra" / "config.yaml")
+    saved.data.root = str(tmp_path / "gone")
+    OmegaConf.save(saved, run / ".hydra" / "config.yaml")
+    overrides = [
+        "adapt=true",
+        f"init_from={run}",
+        f"root={unlabelled}",
+        f"paths.output_dir={tmp_path}",
+    ]
+    with pytest.raises(ValueError, match=r"gone: the twin .* adaptation.replay=0 to adapt"):
+        adapted_config(compose_config("train", overrides), overrides)
+    without = [*overrides, "adaptation.replay=0"]
+    cfg = adapted_config(compose_config("train", without), without)
+    assert "replay" not in cfg.data or not cfg.data.replay
+
+
 def test_adapt_names_what_it_lacks(base_run, unlabelled):
     for overrides, message in (
         (["adapt=true", f"root={unlabelled}"], "init_from=RUN"),

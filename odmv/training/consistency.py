@@ -60,7 +60,7 @@ class ConsistencySettings:
     quality_power: float = 4.0
     anchor: float = 0.02
     stale_mm: float = 0.05
-    replay: float = 0.0
+    replay: float = 1.0
 
     def __post_init__(self):
         if self.window_px < 3 or self.window_px % 2 == 0:
