@@ -310,3 +310,66 @@ def test_stride_2_view_encoder_gives_channels_last_volumes():
         vol, full = _tiny(stem_stride=2, view_channels=3, memory_format=fmt).stem(x)
         for v in (vol, full):
             assert v.is_contiguous(memory_format=torch.channels_last_3d) == (fmt != "contiguous")
+
+
+@pytest.mark.parametrize("views", [1, 3, 4])
+@pytest.mark.parametrize("circular", [False, True])
+@pytest.mark.parametrize(
+    "layer",
+    [
+        dict(cin=2, cout=1, kernel=(3, 7, 7), padding=(1, 3, 3)),  # the fusion's attention
+        dict(cin=2, cout=3, kernel=(3, 5, 5), padding=(1, 4, 4), dilation=(1, 2, 2)),
+        dict(cin=6, cout=6, kernel=3, padding=1, groups=6),  # depthwise across the views
+        dict(cin=6, cout=6, kernel=(1, 3, 3), padding=(0, 1, 1), groups=6),  # within each view
+    ],
+)
+def test_views_folded_into_channels_give_the_3d_convolution(views, circular, layer):
+    """The export form of a 3D convolution over the views (one 2D convolution, the views as
+    channels) gives its values, with zero or circular view padding."""
+    from odmv.models.blocks import Conv3d, ViewCircularConv3d, views_as_channels
+
+    torch.manual_seed(0)
+    kind = ViewCircularConv3d if circular else Conv3d
+    layer = dict(layer)
+    conv = kind(layer.pop("cin"), layer.pop("cout"), layer.pop("kernel"), **layer)
+    assert conv.folds_views()
+    x = torch.randn(2, conv.in_channels, views, 9, 11)
+    torch.testing.assert_close(views_as_channels(conv, x), conv(x), atol=1e-5, rtol=1e-5)
+
+
+def test_the_exported_softmax_is_the_softmax():
+    from odmv.models.blocks import inner_softmax
+
+    x = torch.randn(2, 5, 3, 4)
+    x[0, 1] = float("-inf")  # a missing view
+    torch.testing.assert_close(inner_softmax(x, 1), torch.softmax(x, 1))
+
+    class Exported(torch.nn.Module):
+        def forward(self, x):
+            return inner_softmax(x, 1)
+
+    ort = pytest.importorskip("onnxruntime")
+    program = torch.onnx.export(Exported(), (x,), dynamo=True, verbose=False)
+    ops = {node.op_type for node in program.model_proto.graph.node}
+    assert "Softmax" not in ops and "Exp" in ops  # written out, not ORT's inner-axis Softmax
+    session = ort.InferenceSession(program.model_proto.SerializeToString())
+    torch.testing.assert_close(
+        torch.from_numpy(session.run(None, {"x": x.numpy()})[0]), torch.softmax(x, 1)
+    )
+
+
+def test_the_exported_pixel_repeat_is_nearest_upsampling():
+    from odmv.models.odmvnet import repeat_pixels
+
+    class Exported(torch.nn.Module):
+        def forward(self, x):
+            return repeat_pixels(x, 4)
+
+    ort = pytest.importorskip("onnxruntime")
+    x = torch.rand(2, 1, 3, 5, 6)
+    program = torch.onnx.export(Exported(), (x,), dynamo=True, verbose=False)
+    assert "Resize" not in {node.op_type for node in program.model_proto.graph.node}
+    session = ort.InferenceSession(program.model_proto.SerializeToString())
+    got = torch.from_numpy(session.run(None, {"x": x.numpy()})[0])
+    torch.testing.assert_close(got, repeat_pixels(x, 4), atol=0, rtol=0)
+    assert got.shape == (2, 1, 3, 20, 24)

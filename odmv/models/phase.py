@@ -32,6 +32,7 @@ from odmv.classical.geometry import (
     offset_from_depth,
     offset_from_phase,
 )
+from odmv.models.blocks import inner_softmax
 
 HEADS = ("depth", "phase")
 
@@ -116,7 +117,7 @@ def view_depths(out: dict, maps: torch.Tensor, coarse_mm: torch.Tensor) -> torch
         order = out["order"]
         levels = torch.arange(order.shape[2], device=order.device, dtype=order.dtype)
         levels = levels + lowest_order(order.shape[2])  # each class's centre, in periods
-        coarse = (torch.softmax(order, 2) * levels[:, None, None]).sum(2)
+        coarse = (inner_softmax(order, 2) * levels[:, None, None]).sum(2)
     else:
         coarse = offset_from_depth(coarse_mm, maps) / maps[:, :, 1]
     return depth_from_offset(offset_from_phase(fraction, coarse, maps), maps)
@@ -136,7 +137,7 @@ def fuse(out: dict, maps: torch.Tensor, norm, available=None) -> dict:
         if available is not None:
             keep = torch.cat([available, available.new_ones(available.shape[0], 1)], 1)
             logits = logits.masked_fill(~keep[..., None, None], float("-inf"))
-        weights = torch.softmax(logits, 1)
+        weights = inner_softmax(logits, 1)
         # a view's depth can be far off where it is unlit; its weight is then ~0, never NaN
         fused = (weights * torch.nan_to_num(candidates)).sum(1, keepdim=True)
     return out | {
