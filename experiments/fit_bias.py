@@ -38,8 +38,8 @@ def main() -> None:
         maps = triangulation_maps(
             m.rig, m.views, a.size, a.size, spec.period_px, spec.step, spec.n_steps
         )
-        maps = torch.from_numpy(maps)[None]
         scenes = [load_scene(m, s["id"], spec) for s in m.scenes[: a.scenes]]
+        maps = torch.from_numpy(maps)[None].expand(len(scenes), -1, -1, -1, -1)
         fringes = torch.from_numpy(np.stack([s["fringes"] for s in scenes]))
         truth = torch.from_numpy(np.stack([s["depth_mm"] for s in scenes]))
         known = torch.isfinite(truth)
@@ -47,8 +47,7 @@ def main() -> None:
         for fit in a.fits:
             window, harmonics = (int(x) for x in fit.split(":"))
             settings = ConsistencySettings(window_px=window, harmonics=harmonics)
-            batch_maps = maps.expand(len(scenes), -1, -1, -1, -1)
-            change, w = view_corrections_mm(truth, fringes, batch_maps, settings)
+            change, w = view_corrections_mm(truth, fringes, maps, settings)
             w = w * known  # pixels without a true depth carry no weight
             bias = (w * change).sum((0, 2, 3)) / w.sum((0, 2, 3))
             pull = float((w * change.abs()).sum() / w.sum())

@@ -102,14 +102,13 @@ def fringe_fit(
         mi = _box(image, k)
         # the centred normal equations, damped where the phase barely varies
         n = len(basis)
-        normal = torch.stack(
-            [
-                _box(basis[i] * basis[j], k) - means[i] * means[j]
-                for i in range(n)
-                for j in range(n)
-            ],
-            -1,
-        ).unflatten(-1, (n, n))
+        pairs = {
+            (i, j): _box(basis[i] * basis[j], k) - means[i] * means[j]
+            for i in range(n)
+            for j in range(i, n)
+        }  # symmetric: each entry once
+        normal = torch.stack([pairs[min(i, j), max(i, j)] for i in range(n) for j in range(n)], -1)
+        normal = normal.unflatten(-1, (n, n))
         moments = torch.stack(
             [_box(x * image, k) - m * mi for x, m in zip(basis, means, strict=True)], -1
         )
