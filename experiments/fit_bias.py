@@ -8,7 +8,9 @@ with it (odmv/training/consistency.py, experiments/results/adapt/notebook.md).
 
 Per dataset and fit (window px : harmonics): each view's weighted mean asked-for change (the
 bias: what moves a whole view), the weighted mean of its magnitude (what pulls each pixel),
-and the share of view pixels with weight.
+and the share of view pixels with weight; first, per dataset, each view's second harmonic
+against its fundamental (what ``adaptation.harmonics=auto`` looks at), with ``--run CKPT``
+also over all views under that net's depth, as the adaptation measures it.
 """
 
 from __future__ import annotations
@@ -21,7 +23,10 @@ import torch
 from odmv.classical.geometry import triangulation_maps
 from odmv.data.dataset import check_spec, load_scene
 from odmv.io.manifest import load_manifest
-from odmv.training.consistency import ConsistencySettings, view_corrections_mm
+from odmv.training.adaptation import second_harmonic_share
+from odmv.training.consistency import ConsistencySettings, harmonic_sums, view_corrections_mm
+from odmv.training.evaluation import checkpoint_datamodule
+from odmv.training.module import load_module
 
 
 def main() -> None:
@@ -30,9 +35,18 @@ def main() -> None:
     p.add_argument("--scenes", type=int, default=24, help="the first N scenes of each")
     p.add_argument("--size", type=int, default=64, help="image size (px)")
     p.add_argument("--fits", nargs="+", default=["5:1", "9:1", "9:2"], help="WINDOW:HARMONICS")
+    p.add_argument("--run", help="a checkpoint: the second harmonic also under its depth")
     a = p.parse_args()
     torch.set_num_threads(1)
+    module = load_module(a.run) if a.run else None
     for root in a.datasets:
+        if module is not None:  # what harmonics=auto sees: a net's depth, no truth
+            dm = checkpoint_datamodule(module, None, root=root, calibration=True, batch_size=4)
+            module.norm = dm.norm
+            batches = -(-a.scenes // 4)
+            loader = dm.train_dataloader() if dm.splits.get("train") else dm.test_dataloader()
+            share = second_harmonic_share(module, loader, ConsistencySettings(), batches)
+            print(f"{root}  second / first harmonic under the run's depth: {share:.3f}", flush=True)
         m = load_manifest(root)
         spec = check_spec(m, m.views, a.size, None, None)
         maps = triangulation_maps(
@@ -44,6 +58,11 @@ def main() -> None:
         truth = torch.from_numpy(np.stack([s["depth_mm"] for s in scenes]))
         known = torch.isfinite(truth)
         truth = torch.where(known, truth, truth.nanmean())
+        second, first = harmonic_sums(truth, fringes, maps, ConsistencySettings())
+        ratios = ", ".join(
+            f"{v} {float(r):.3f}" for v, r in zip(m.views, second / first, strict=True)
+        )
+        print(f"{root}  second / first harmonic at the truth: {ratios}", flush=True)
         for fit in a.fits:
             window, harmonics = (int(x) for x in fit.split(":"))
             settings = ConsistencySettings(window_px=window, harmonics=harmonics)

@@ -34,7 +34,7 @@ from odmv.cli import (
 from odmv.io.atomic import write_json, write_text
 from odmv.io.manifest import MANIFEST
 from odmv.io.runfolder import CONFIG, METRICS, portable, portable_record
-from odmv.training.adaptation import check_calibration, view_offsets
+from odmv.training.adaptation import check_calibration, second_harmonic_share, view_offsets
 from odmv.training.checkpoint import (
     AtomicCheckpointIO,
     check_fits,
@@ -43,8 +43,9 @@ from odmv.training.checkpoint import (
     initial_weights,
     read_checkpoint,
 )
+from odmv.training.consistency import SECOND_HARMONIC_SHARE, chosen_fit
 from odmv.training.ema import WeightEMA
-from odmv.training.module import FPPModule
+from odmv.training.module import FPPModule, load_module
 from odmv.training.pace import CpuPace, EpochLine, busy_cores_note, heavy_on_cpu
 from odmv.training.provenance import provenance
 from odmv.training.runlock import check_new_run, holding
@@ -286,8 +287,10 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
     elif cfg.get("init_from"):  # a resumed fine-tune continues from its own checkpoint instead
         module.load_state_dict(initial_weights(cfg.init_from, module.state_dict()))
     calibration = {}
+    if cfg.get("adapt") and module.adapt.harmonics == "auto":  # resumed runs choose again
+        calibration = _chosen_fit(cfg, dm, module)
     if cfg.get("adapt") and ckpt is None:
-        calibration = _checked_calibration(cfg, dm, module)
+        calibration |= _checked_calibration(cfg, dm, module)
     try:
         trainer.fit(module, datamodule=dm, ckpt_path=cfg.ckpt_path, weights_only=True)
     except SIGTERMException:  # Lightning's is a SystemExit without a status: exit 0
@@ -344,6 +347,27 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
                 {k: v for k, v in record.items() if not isinstance(v, list)},
             )
     return metrics
+
+
+def _chosen_fit(cfg: DictConfig, dm, module: FPPModule) -> dict:
+    """``adaptation.harmonics=auto``: the fit chosen by the second harmonic of the held-out
+    scenes' fringes under the starting net's depth (the same net on a resumed run), set on
+    ``module``; returns the share and the fit for the run's record. The torch random state is
+    left as it was, so the run trains as one that named the fit."""
+    with torch.random.fork_rng(devices=[]):
+        dm.prepare_data()
+        dm.setup("fit")
+        start = load_module(cfg.init_from)
+        start.norm = dm.norm  # the run reads images as its start did
+        share = second_harmonic_share(start, dm.val_dataloader(), module.adapt)
+    module.adapt = chosen_fit(module.adapt, share)
+    a = module.adapt
+    rank_zero_print(
+        f"fringe fit: second harmonic {share:.3f} of the fundamental "
+        f"({'>=' if a.harmonics == 2 else '<'} {SECOND_HARMONIC_SHARE}): {a.harmonics} "
+        f"harmonic{'s' if a.harmonics > 1 else ''} in {a.window_px} px windows"
+    )
+    return {"second_harmonic_share": round(share, 4), "fit": f"{a.window_px}:{a.harmonics}"}
 
 
 def _checked_calibration(cfg: DictConfig, dm, module: FPPModule) -> dict:

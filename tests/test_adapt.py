@@ -29,9 +29,12 @@ from odmv.sim.writer import SimSettings, simulate
 from odmv.train import adapted_config, train
 from odmv.training.adaptation import StaleCalibrationError, check_calibration
 from odmv.training.consistency import (
+    SECOND_HARMONIC_SHARE,
     ConsistencySettings,
+    chosen_fit,
     consistency_loss,
     fringe_fit,
+    harmonic_sums,
     view_offsets_mm,
 )
 from odmv.training.evaluation import evaluate
@@ -113,6 +116,31 @@ def test_the_fit_with_harmonics_reads_a_gamma_distorted_fringe():
     assert fringe_fit(undistorted, phase, 9, harmonics=2)[0][inner].abs().max() < 1e-4
     with pytest.raises(ValueError, match="harmonics: 2 .* window_px is 3"):
         ConsistencySettings(window_px=3, harmonics=2)
+
+
+def test_the_fit_is_chosen_by_the_fringes_second_harmonic(clean_scenes, tmp_path):
+    """At the true depth, the twin's sinusoid carries almost no second harmonic and projector
+    gamma 2.2 a large one: harmonics=auto fits one harmonic to the first, two (in a window of
+    about a fringe period) to the second."""
+    gamma = tmp_path / "gamma"
+    settings = SimSettings(
+        out=gamma, scenes=2, height_px=64, width_px=64, seed=1, images="training",
+        fringe=FringeSpec(train_frequency=1), render=CLEAN, shift=Shift("gamma", 2.2, 0),
+    )  # fmt: skip
+    simulate(settings, workers=1, progress=False)
+    auto = ConsistencySettings(harmonics="auto")
+    shares = {}
+    for name, root in (("sinusoid", clean_scenes), ("gamma", gamma)):
+        fringes, truth, maps = _scene(root, "000001")
+        second, first = harmonic_sums(truth, fringes, maps, auto)
+        shares[name] = float(second.sum() / first.sum())
+    assert shares["sinusoid"] < 0.5 * SECOND_HARMONIC_SHARE < SECOND_HARMONIC_SHARE
+    assert shares["gamma"] > 1.5 * SECOND_HARMONIC_SHARE
+    fits = {k: chosen_fit(auto, v) for k, v in shares.items()}
+    assert (fits["sinusoid"].harmonics, fits["sinusoid"].window_px) == (1, 5)
+    assert (fits["gamma"].harmonics, fits["gamma"].window_px) == (2, 9)
+    with pytest.raises(ValueError, match="harmonics: three must be auto or at least 1"):
+        ConsistencySettings(harmonics="three")
 
 
 def test_a_turned_projector_makes_the_views_disagree(clean_scenes, tmp_path):
@@ -214,6 +242,13 @@ def test_adapt_fine_tunes_a_run_on_fringes_alone(base_run, unlabelled, twin240, 
         VIEW_NAMES
     )
     assert np.isfinite(metrics["val/loss"])
+    # harmonics=auto (the default) chose a fit and trains as a run that names it
+    window, harmonics = record["fit"].split(":")
+    assert 0 <= record["second_harmonic_share"] < 1 and harmonics in ("1", "2")
+    named = [*overrides[:3], f"paths.output_dir={tmp_path / 'named'}", *overrides[4:]]
+    named += [f"adaptation.harmonics={harmonics}", f"adaptation.window_px={window}"]
+    again = train(adapted_config(compose_config("train", named), named))
+    assert again["val/loss"] == metrics["val/loss"]
     module = load_module(out / record["best_checkpoint"])
     assert module.adapt is None and module.hparams.adapt["anchor"] == SETTINGS.anchor
     # where labels exist, the adapted net is measured like any

@@ -1,4 +1,5 @@
-"""Label-free adaptation (``adapt=true``): the calibration check that comes before it.
+"""Label-free adaptation (``adapt=true``): what comes before it, the fit chosen from the
+user's fringes (``adaptation.harmonics=auto``) and the calibration check.
 
 The consistency loss (odmv.training.consistency) fits a depth to the fringes through the rig's
 calibration. If the rig moved after it was calibrated, no depth explains every view, and
@@ -6,36 +7,62 @@ fitting one would teach the net the wrong geometry. So before adapting, the net 
 is run on the user's scenes and each view's mean asked-for depth change is measured: a net's
 own error moves every view alike, a stale calibration moves each view its own way. Where the
 views' spread exceeds ``stale_mm`` the run stops and says so.
+
+A fringe that is not a sinusoid (projector gamma) pulls the default sinusoid fit off the true
+depth; the starting net's depth shows how much second harmonic the user's fringes carry, and
+``harmonics=auto`` fits two harmonics where that is large.
 """
 
 from __future__ import annotations
 
 import torch
 
-from odmv.training.consistency import view_offsets_mm
+from odmv.training.consistency import harmonic_sums, view_offsets_mm
 
 
 class StaleCalibrationError(ValueError):
     """The views disagree on the depth: the calibration no longer describes the rig."""
 
 
+def _depths(module, loader, max_batches: int):
+    """``module``'s depth (mm), the linear fringes and the calibration maps of up to
+    ``max_batches`` batches of ``loader``, in eval mode without gradients."""
+    was_training = module.training
+    module.eval()
+    try:
+        with torch.no_grad():
+            for i, batch in enumerate(loader):
+                if i >= max_batches:
+                    break
+                depth_mm = module.depth_mm(module.run(batch))
+                yield (
+                    depth_mm,
+                    module.norm.intensity(batch["fringes"].float()),
+                    batch["calibration"],
+                )
+    finally:
+        module.train(was_training)
+
+
 def view_offsets(module, loader, views: list[str], max_batches: int = 8) -> dict[str, float]:
     """Each view's mean asked-for depth change (mm) of ``module``'s depth over up to
     ``max_batches`` batches of ``loader``, by view name (``views``: the batches' views)."""
-    sums, totals = None, None
-    was_training = module.training
-    module.eval()
-    with torch.no_grad():
-        for i, batch in enumerate(loader):
-            if i >= max_batches:
-                break
-            depth_mm = module.depth_mm(module.run(batch))
-            linear = module.norm.intensity(batch["fringes"].float())
-            mean, total = view_offsets_mm(depth_mm, linear, batch["calibration"], module.adapt)
-            sums = mean * total if sums is None else sums + mean * total
-            totals = total if totals is None else totals + total
-    module.train(was_training)
+    sums, totals = 0.0, 0.0
+    for depth_mm, linear, maps in _depths(module, loader, max_batches):
+        mean, total = view_offsets_mm(depth_mm, linear, maps, module.adapt)
+        sums, totals = sums + mean * total, totals + total
     return {v: float(s / t) for v, s, t in zip(views, sums, totals, strict=True) if t > 0}
+
+
+def second_harmonic_share(module, loader, settings, max_batches: int = 8) -> float:
+    """The fringes' second harmonic relative to their fundamental over up to ``max_batches``
+    batches of ``loader``, seen through ``module``'s depth (:func:`harmonic_sums`): what
+    ``adaptation.harmonics=auto`` chooses its fit by."""
+    second, first = 0.0, 0.0
+    for depth_mm, linear, maps in _depths(module, loader, max_batches):
+        s, f = harmonic_sums(depth_mm, linear, maps, settings)
+        second, first = second + s.sum(), first + f.sum()
+    return float(second / first) if float(first) > 0 else 0.0
 
 
 def check_calibration(offsets: dict[str, float], stale_mm: float, where) -> float | None:

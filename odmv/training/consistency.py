@@ -32,7 +32,7 @@ and scores 0.44 mm on the twin, three times the networks' error (docs/findings.m
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import torch
 import torch.nn.functional as F
@@ -48,14 +48,15 @@ class ConsistencySettings:
     exponent of the fit's R^2 in the weight. ``anchor``: the trust region's weight per mm of
     mean absolute change from the starting net. ``harmonics``: the fringe's harmonics in the
     fit (1: a sinusoid; 2 takes up a fringe distorted by projector gamma or gloss, and wants a
-    window of about a fringe period: 9 px at 64 px). ``stale_mm``: the spread (std, mm) of the
+    window of about a fringe period: 9 px at 64 px; ``auto``: chosen from the user's images
+    before adapting, :func:`chosen_fit`). ``stale_mm``: the spread (std, mm) of the
     views' mean asked-for depth changes above which the calibration is taken to be stale
     (:func:`view_offsets_mm`). ``replay``: the weight of the starting net's own loss on
     batches of its own (labelled) training scenes, beside every batch of the user's: what it
     knew of the twin is kept (0: none)."""
 
     window_px: int = 5
-    harmonics: int = 1
+    harmonics: int | str = 1
     min_amplitude: float = 0.02
     quality_power: float = 4.0
     anchor: float = 0.02
@@ -65,10 +66,17 @@ class ConsistencySettings:
     def __post_init__(self):
         if self.window_px < 3 or self.window_px % 2 == 0:
             raise ValueError(f"adaptation.window_px: {self.window_px} must be odd and at least 3")
-        if self.harmonics < 1 or self.window_px < 2 * self.harmonics + 1:
+        if self.harmonics == "auto":
+            pass
+        elif (
+            not isinstance(self.harmonics, int)
+            or self.harmonics < 1
+            or self.window_px < 2 * self.harmonics + 1
+        ):
             raise ValueError(
-                f"adaptation.harmonics: {self.harmonics} must be at least 1, with window_px at "
-                f"least 2 x harmonics + 1 (the fit's unknowns; window_px is {self.window_px})"
+                f"adaptation.harmonics: {self.harmonics} must be auto or at least 1, with "
+                f"window_px at least 2 x harmonics + 1 (the fit's unknowns; window_px is "
+                f"{self.window_px})"
             )
         for key in ("min_amplitude", "quality_power", "anchor", "stale_mm", "replay"):
             if getattr(self, key) < 0:
@@ -85,15 +93,11 @@ def _box(x: torch.Tensor, k: int) -> torch.Tensor:
     return F.avg_pool2d(x, k, stride=1, padding=k // 2, count_include_pad=False)
 
 
-def fringe_fit(
-    fringes: torch.Tensor, phase_rad: torch.Tensor, window_px: int, harmonics: int = 1
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The windowed least-squares fit of each view's image (B x S x H x W, linear intensity)
-    as A + sum over k = 1..``harmonics`` of a_k cos(k phase) + b_k sin(k phase) -> (its
-    fundamental's phase e = atan2(-b_1, a_1) in rad, its amplitude sqrt(a_1^2 + b_1^2), the
-    fit's R^2 in [0, 1]), each B x S x H x W; differentiable in ``phase_rad``. The harmonics
-    take up what a fringe that is not a sinusoid (projector gamma, gloss) would otherwise
-    leak into the fundamental's phase inside a window. Runs in float32."""
+def _fit(
+    fringes: torch.Tensor, phase_rad: torch.Tensor, window_px: int, harmonics: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The windowed least-squares fit of :func:`fringe_fit` -> (its coefficients a_1, b_1, a_2,
+    b_2, ... as B x S x H x W x 2 ``harmonics``, its R^2 B x S x H x W), in float32."""
     with torch.autocast(fringes.device.type, enabled=False):
         image, phase = fringes.float(), phase_rad.float()
         k = window_px
@@ -116,8 +120,56 @@ def fringe_fit(
         coef = torch.linalg.solve(normal + 1e-6 * eye, moments.unsqueeze(-1)).squeeze(-1)
         ii = _box(image * image, k) - mi * mi
         r2 = ((coef * moments).sum(-1) / ii.clamp_min(1e-9)).clamp(0, 1)
-        a, b = coef[..., 0], coef[..., 1]
-        return torch.atan2(-b, a), torch.sqrt(a * a + b * b + 1e-12), r2
+        return coef, r2
+
+
+def fringe_fit(
+    fringes: torch.Tensor, phase_rad: torch.Tensor, window_px: int, harmonics: int = 1
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The windowed least-squares fit of each view's image (B x S x H x W, linear intensity)
+    as A + sum over k = 1..``harmonics`` of a_k cos(k phase) + b_k sin(k phase) -> (its
+    fundamental's phase e = atan2(-b_1, a_1) in rad, its amplitude sqrt(a_1^2 + b_1^2), the
+    fit's R^2 in [0, 1]), each B x S x H x W; differentiable in ``phase_rad``. The harmonics
+    take up what a fringe that is not a sinusoid (projector gamma, gloss) would otherwise
+    leak into the fundamental's phase inside a window. Runs in float32."""
+    coef, r2 = _fit(fringes, phase_rad, window_px, harmonics)
+    a, b = coef[..., 0], coef[..., 1]
+    return torch.atan2(-b, a), torch.sqrt(a * a + b * b + 1e-12), r2
+
+
+def harmonic_sums(
+    depth_mm: torch.Tensor, fringes: torch.Tensor, maps: torch.Tensor, settings
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """How far the fringes are from a sinusoid, seen through ``depth_mm``'s phase: the
+    windowed fit with two harmonics in a window of twice ``settings.window_px`` - 1 (about a
+    fringe period), summed over the pixels of each view that the default fit weights -> (the
+    sum of weight x second-harmonic amplitude, the sum of weight x first-harmonic amplitude),
+    each S. Their quotient is the fringe's second harmonic relative to its fundamental: at
+    the true depth 0.03-0.04 for the twin's sinusoids, 0.05-0.06 under defocus 1.5, 0.27
+    under projector gamma 2.2 (experiments/fit_bias.py)."""
+    with torch.no_grad():
+        phase = phase_from_depth(depth_mm.float(), maps.float())
+        coef, r2 = _fit(fringes, phase, 2 * settings.window_px - 1, 2)
+        first = torch.sqrt(coef[..., 0].square() + coef[..., 1].square() + 1e-12)
+        second = torch.sqrt(coef[..., 2].square() + coef[..., 3].square())
+        w = _weights(first, r2, settings)
+        return (w * second).sum((0, 2, 3)), (w * first).sum((0, 2, 3))
+
+
+#: the second harmonic's share of the fundamental above which ``harmonics=auto`` fits two
+#: harmonics: between the twin's sinusoids (under a net's depth 0.04 nominal, 0.08 defocus 1.5)
+#: and its projector gamma 2.2 (0.26), a 3x margin each side (adapt/notebook.md, round 7)
+SECOND_HARMONIC_SHARE = 0.15
+
+
+def chosen_fit(settings: ConsistencySettings, share: float) -> ConsistencySettings:
+    """``harmonics=auto`` resolved by the fringes' measured second-harmonic ``share``
+    (:func:`harmonic_sums`): a sinusoid fit in ``window_px`` below
+    :data:`SECOND_HARMONIC_SHARE`, else two harmonics in a window of about a fringe period
+    (2 ``window_px`` - 1), where the sinusoid fit would be pulled off the truth."""
+    if share < SECOND_HARMONIC_SHARE:
+        return replace(settings, harmonics=1)
+    return replace(settings, harmonics=2, window_px=2 * settings.window_px - 1)
 
 
 def _weights(amplitude, r2, settings: ConsistencySettings, available=None) -> torch.Tensor:
