@@ -96,13 +96,47 @@ def test_the_confidence_can_be_trained_against_each_views_error():
     assert torch.isclose(error["confidence"], lit["confidence"])
     out["confidence"] = torch.tensor([5.0, -5.0, 0.0]).view(1, 3, 1, 1).expand(b, 3, h, w)
     assert composite_loss(out, batch, LossWeights(confidence_target="error"))["confidence"] < 0.01
-    with pytest.raises(ValueError, match="confidence_target"):
+    with pytest.raises(ValueError, match="confidence_target.*lit, error, nearest"):
         LossWeights(confidence_target="both")
+
+
+def test_the_confidence_can_be_trained_to_pick_the_candidate_nearest_the_truth():
+    """confidence_target=nearest: the blend's softmax over the views and the regressed depth
+    against the one nearest the truth; a missing view is no candidate, a pixel without truth no
+    target."""
+    b, s, h, w = 1, 2, 8, 8
+    maps = torch.from_numpy(triangulation_maps(RIG, ["right", "up"], h, w, 240.0, 0, 12))[None]
+    truth = torch.full((b, 1, h, w), 150.0)
+    truth[..., 0, 0] = float("nan")
+    batch = {
+        "depth": torch.zeros(b, 1, h, w), "depth_mm": truth, "lit": torch.ones(b, s, h, w),
+        "phase_target": torch.zeros(b, 2 * s, h, w), "calibration": maps,
+        "projector_coord": maps[:, :, 0].clone(),
+    }  # fmt: skip
+    out = {
+        "depth": torch.zeros(b, 1, h, w), "regressed": torch.zeros(b, 1, h, w),
+        "regressed_mm": torch.full((b, 1, h, w), 150.5), "phase": torch.zeros(b, 2 * s, h, w),
+        "confidence": torch.zeros(b, s + 1, h, w, requires_grad=True),
+        "view_depth_mm": torch.tensor([150.05, 151.0]).view(1, 2, 1, 1).expand(b, s, h, w),
+    }  # fmt: skip
+    nearest = LossWeights(confidence_target="nearest")
+    loss = composite_loss(out, batch, nearest)["confidence"]
+    assert torch.isclose(loss, torch.tensor(np.log(3.0), dtype=torch.float32))  # even logits
+    loss.backward()  # descent raises the nearest view's logit, lowers the others'
+    grad = out["confidence"].grad[0, :, 1, 1]
+    assert grad[0] < 0 < grad[1] and grad[2] > 0 and out["confidence"].grad[0, :, 0, 0].eq(0).all()
+    out["confidence"] = torch.tensor([5.0, -5.0, 0.0]).view(1, 3, 1, 1).expand(b, 3, h, w)
+    assert composite_loss(out, batch, nearest)["confidence"] < 0.01
+    # the first view missing: the regressed depth (0.5 mm off) is nearer than the second (1 mm)
+    batch["available"] = torch.tensor([[False, True]])
+    out["confidence"] = torch.tensor([0.0, -5.0, 5.0]).view(1, 3, 1, 1).expand(b, 3, h, w)
+    assert composite_loss(out, batch, nearest)["confidence"] < 0.01
 
 
 @pytest.fixture(scope="module")
 def phase_runs(tiny_dataset, tmp_path_factory):
-    """Each net trained for one epoch with the phase head: {model: (run folder, metrics)}."""
+    """Each net trained for one epoch with the phase head (UHRNet's confidence against the
+    nearest candidate): {model: (run folder, metrics)}."""
     runs = {}
     for model, views in (("odmvnet", 4), ("unet", 1), ("hnet", 1), ("uhrnet", 1), ("mtlnet", 2)):
         out = tmp_path_factory.mktemp(f"phase-{model}")
@@ -110,6 +144,8 @@ def phase_runs(tiny_dataset, tmp_path_factory):
         ov += [f"model={model}", f"widths.{model}=4", f"views={views}", "head=phase"]
         ov += ["reference=true", "data.fringe_frequency=1"]
         ov += ["model.net.blocks=1"] if model == "odmvnet" else []
+        # the candidates' own target, in a real training step
+        ov += ["loss.confidence_target=nearest"] if model == "uhrnet" else []
         runs[model] = out, train(compose_config("train", ov))
     return runs
 

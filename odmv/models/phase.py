@@ -125,13 +125,15 @@ def view_depths(out: dict, maps: torch.Tensor, coarse_mm: torch.Tensor) -> torch
 
 def fuse(out: dict, maps: torch.Tensor, norm, available=None) -> dict:
     """The net's outputs with ``depth`` the confidence-weighted blend of the views' depths and
-    the regressed one (kept as ``regressed``), ``view_depth_mm`` (B x S x H x W) and the
+    the regressed one (kept as ``regressed``, and in mm as ``regressed_mm``), ``view_depth_mm``
+    (B x S x H x W) and the
     blend's ``weights`` (B x (S + 1) x H x W). ``norm``: the net's depth units (``depth``: mm ->
     units, ``depth_mm``: back); ``available`` (B x S bool or None): a missing view gets no
     weight. Runs in float32."""
     with torch.autocast(maps.device.type, enabled=False):
         out = {k: v.float() if torch.is_tensor(v) else v for k, v in out.items()}
-        depth_mm = view_depths(out, maps.float(), norm.depth_mm(out["depth"]))
+        regressed_mm = norm.depth_mm(out["depth"])
+        depth_mm = view_depths(out, maps.float(), regressed_mm)
         candidates = torch.cat([norm.depth(depth_mm), out["depth"]], 1)
         logits = out["confidence"]
         if available is not None:
@@ -143,6 +145,7 @@ def fuse(out: dict, maps: torch.Tensor, norm, available=None) -> dict:
     return out | {
         "depth": fused,
         "regressed": out["depth"],
+        "regressed_mm": regressed_mm,
         "view_depth_mm": depth_mm,
         "weights": weights,
     }

@@ -41,7 +41,7 @@ PHASE_TERMS = (
     "confidence_tol_mm",
     "regressed",
 )
-CONFIDENCE_TARGETS = ("lit", "error")
+CONFIDENCE_TARGETS = ("lit", "error", "nearest")
 
 
 @dataclass
@@ -53,7 +53,7 @@ class LossWeights:
     phase: float = 1.0  # wrapped-phase head of multi-task baselines (MTLNet) and head=phase
     order: float = 1.0  # head=phase: fringe-order cross-entropy
     confidence: float = 1.0  # head=phase: confidence BCE
-    confidence_target: str = "lit"  # lit | error
+    confidence_target: str = "lit"  # lit | error | nearest
     confidence_tol_mm: float = 0.2  # the error target's tolerance
     regressed: float = 1.0  # head=phase: depth loss of the regressed fallback
     ssim_window: int = 11
@@ -62,7 +62,8 @@ class LossWeights:
     def __post_init__(self):
         if self.confidence_target not in CONFIDENCE_TARGETS:
             raise ValueError(
-                f"loss.confidence_target: {self.confidence_target!r} unknown; choose lit or error"
+                f"loss.confidence_target: {self.confidence_target!r} unknown; choose from "
+                f"{', '.join(CONFIDENCE_TARGETS)}"
             )
 
 
@@ -147,16 +148,40 @@ def _phase_head_terms(out, batch, w: LossWeights, available, terms: dict) -> tor
         ce = F.cross_entropy(logits.transpose(1, 2), order, reduction="none")  # B x S x H x W
         terms["order"] = (ce * lit).sum() / lit.sum().clamp_min(1)
         total = w.order * terms["order"]
-    conf = out["confidence"][:, : lit.shape[1]].float()
-    if w.confidence_target == "lit":
-        target = lit.float()
-    else:  # the view's own depth within the tolerance of the truth
-        err = (out["view_depth_mm"].detach() - batch["depth_mm"]).abs()
-        target = (err <= w.confidence_tol_mm).float()
-    seen = (
-        lit.new_ones(lit.shape) if available is None else available[..., None, None].expand_as(lit)
-    )
-    bce = F.binary_cross_entropy_with_logits(conf, target, reduction="none")
-    terms["confidence"] = (bce * seen).sum() / seen.sum().clamp_min(1)
+    if w.confidence_target == "nearest":
+        terms["confidence"] = _nearest_candidate_loss(out, batch, available)
+    else:
+        conf = out["confidence"][:, : lit.shape[1]].float()
+        if w.confidence_target == "lit":
+            target = lit.float()
+        else:  # the view's own depth within the tolerance of the truth
+            err = (out["view_depth_mm"].detach() - batch["depth_mm"]).abs()
+            target = (err <= w.confidence_tol_mm).float()
+        seen = lit.new_ones(lit.shape)
+        if available is not None:
+            seen = available[..., None, None].expand_as(lit)
+        bce = F.binary_cross_entropy_with_logits(conf, target, reduction="none")
+        terms["confidence"] = (bce * seen).sum() / seen.sum().clamp_min(1)
     terms["regressed"] = depth_loss(out["regressed"], batch["depth"], w)["loss"]
     return total + w.confidence * terms["confidence"] + w.regressed * terms["regressed"]
+
+
+def _nearest_candidate_loss(out: dict, batch: dict, available) -> torch.Tensor:
+    """``confidence_target=nearest``: the cross-entropy of the blend's softmax over the views
+    and the regressed depth against the candidate nearest the truth at each pixel with one.
+    Unlike the per-view targets it trains the regressed depth's confidence too, and ranks the
+    candidates against each other rather than each against a fixed tolerance."""
+    logits = out["confidence"].float()  # B x (S + 1) x H x W
+    with torch.no_grad():
+        candidates = torch.cat([out["view_depth_mm"], out["regressed_mm"]], 1).float()
+        err = (candidates - batch["depth_mm"]).abs().nan_to_num(float("inf"))
+        if available is not None:  # a missing view is no candidate
+            keep = torch.cat([available, available.new_ones(available.shape[0], 1)], 1)
+            err = err.masked_fill(~keep[..., None, None], float("inf"))
+        known = torch.isfinite(batch["depth_mm"][:, 0])
+        # where there is no truth, the regressed depth (always a candidate) stands in unused
+        nearest = torch.where(known, err.argmin(1), err.shape[1] - 1)
+    if available is not None:
+        logits = logits.masked_fill(~keep[..., None, None], float("-inf"))
+    ce = F.cross_entropy(logits, nearest, reduction="none")  # B x H x W
+    return (ce * known).sum() / known.sum().clamp_min(1)
