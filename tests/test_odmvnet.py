@@ -373,3 +373,27 @@ def test_the_exported_pixel_repeat_is_nearest_upsampling():
     got = torch.from_numpy(session.run(None, {"x": x.numpy()})[0])
     torch.testing.assert_close(got, repeat_pixels(x, 4), atol=0, rtol=0)
     assert got.shape == (2, 1, 3, 20, 24)
+
+
+def test_folding_the_batchnorms_keeps_the_evaluated_nets_values():
+    """The export's BatchNorm folding on the light net (separable 3D convolutions, their
+    depthwise part last where channels shrink) with trained-looking running statistics: the
+    same depth, and no BatchNorm left after a convolution."""
+    from odmv.models.blocks import fold_batchnorm
+
+    torch.manual_seed(0)
+    net = ODMVNet(base_width=4, blocks=1, stem_stride=4, levels=3, full_width=4, separable=True)
+    for m in net.modules():
+        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+            m.running_mean.uniform_(-0.5, 0.5)
+            m.running_var.uniform_(0.5, 2.0)
+            m.weight.data.uniform_(0.5, 1.5)
+            m.bias.data.uniform_(-0.2, 0.2)
+    net.eval()
+    x = torch.randn(1, 4, 32, 32)
+    before = net(x)["depth"]
+    norms = sum(isinstance(m, torch.nn.BatchNorm3d) for m in net.modules())
+    fold_batchnorm(net)
+    left = sum(isinstance(m, torch.nn.BatchNorm3d) for m in net.modules())
+    assert norms > 10 and left == 0
+    torch.testing.assert_close(net(x)["depth"], before, atol=1e-5, rtol=1e-4)

@@ -17,6 +17,7 @@ input size, normalization and input settings.
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import warnings
@@ -28,6 +29,7 @@ import torch
 from odmv.classical.geometry import triangulation_maps
 from odmv.data.reference import view_channels
 from odmv.io.atomic import write_atomic
+from odmv.models.blocks import fold_batchnorm
 from odmv.rig import Rig, size_hw
 from odmv.training.module import FPPModule, load_module
 
@@ -75,7 +77,9 @@ def metadata(module: FPPModule, ckpt_path: str | Path) -> dict:
 def export_graph(model: torch.nn.Module, example: torch.Tensor, maps: torch.Tensor | None = None):
     """The ONNX ModelProto of ``model`` (input ``inputs`` with a dynamic batch, output
     ``depth_mm``; with ``maps`` also the input ``calibration`` and the output ``weights``),
-    traced with ``example``; the exporter's chatter silenced."""
+    traced with ``example`` from a copy with its BatchNorms folded into the convolutions
+    (:func:`~odmv.models.blocks.fold_batchnorm`); the exporter's chatter silenced."""
+    model = fold_batchnorm(copy.deepcopy(model).eval())
     for name in ("torch.onnx", "onnxscript", "onnx_ir"):  # notes on its own passes
         logging.getLogger(name).setLevel(logging.ERROR)
     batch = torch.export.Dim("batch", min=1, max=1024)

@@ -234,6 +234,38 @@ def set_separable(net: nn.Module, separable: bool) -> nn.Module:
     return net
 
 
+def _last_conv(m: nn.Module) -> nn.Module | None:
+    """The convolution whose output ``m`` gives (``m`` itself, or a Sequential's last), if any."""
+    if isinstance(m, (nn.Conv2d, nn.Conv3d)):
+        return m
+    return _last_conv(m[-1]) if isinstance(m, nn.Sequential) and len(m) else None
+
+
+@torch.no_grad()
+def fold_batchnorm(net: nn.Module) -> nn.Module:
+    """Every BatchNorm that follows a convolution in a Sequential folded into it (the weight
+    scaled per output channel by its running statistics, the bias shifted) and replaced by an
+    identity: the evaluated net's values, one layer fewer. For exports: ONNX Runtime fuses a
+    BatchNorm into the convolution before it itself, but not across the reshapes of a folded
+    depthwise one (:func:`views_as_channels`), where it cost 4.4 ms at 480 px."""
+    for seq in [m for m in net.modules() if isinstance(m, nn.Sequential)]:
+        for i in range(1, len(seq)):
+            bn, conv = seq[i], _last_conv(seq[i - 1])
+            if not isinstance(bn, nn.modules.batchnorm._BatchNorm) or conv is None:
+                continue
+            if bn.running_var is None:  # batch statistics even in eval: nothing to fold
+                continue
+            scale = torch.rsqrt(bn.running_var + bn.eps)
+            shift = -bn.running_mean * scale
+            if bn.affine:
+                scale, shift = scale * bn.weight, shift * bn.weight + bn.bias
+            bias = scale * conv.bias if conv.bias is not None else 0
+            conv.weight = nn.Parameter(conv.weight * scale.view(-1, *[1] * (conv.weight.dim() - 1)))
+            conv.bias = nn.Parameter(bias + shift)
+            seq[i] = nn.Identity()
+    return net
+
+
 MEMORY_FORMATS = ("contiguous", "channels_last")
 
 
