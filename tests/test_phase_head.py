@@ -162,7 +162,7 @@ def test_every_net_trains_with_the_phase_head(phase_runs, model):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("model", ["odmvnet", "mtlnet"])
+@pytest.mark.parametrize("model", ["odmvnet", "unet", "hnet", "uhrnet", "mtlnet"])
 def test_a_phase_head_net_evaluates_predicts_and_exports(model, phase_runs, tiny_dataset, tmp_path):
     run, metrics = phase_runs[model]
     ckpt = metrics["best_checkpoint"]
