@@ -287,10 +287,14 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
     elif cfg.get("init_from"):  # a resumed fine-tune continues from its own checkpoint instead
         module.load_state_dict(initial_weights(cfg.init_from, module.state_dict()))
     calibration = {}
-    if cfg.get("adapt") and module.adapt.harmonics == "auto":  # resumed runs choose again
-        calibration = _chosen_fit(cfg, dm, module)
-    if cfg.get("adapt") and ckpt is None:
-        calibration |= _checked_calibration(cfg, dm, module)
+    if cfg.get("adapt"):  # before adapting: the data, then the fit and the calibration check
+        dm.prepare_data()
+        dm.setup("fit")
+        module.norm = dm.norm  # as the trainer's setup will set it
+        if module.adapt.harmonics == "auto":  # resumed runs choose again
+            calibration = _chosen_fit(cfg, dm, module)
+        if ckpt is None:
+            calibration |= _checked_calibration(cfg, dm, module)
     try:
         trainer.fit(module, datamodule=dm, ckpt_path=cfg.ckpt_path, weights_only=True)
     except SIGTERMException:  # Lightning's is a SystemExit without a status: exit 0
@@ -355,8 +359,6 @@ def _chosen_fit(cfg: DictConfig, dm, module: FPPModule) -> dict:
     ``module``; returns the share and the fit for the run's record. The torch random state is
     left as it was, so the run trains as one that named the fit."""
     with torch.random.fork_rng(devices=[]):
-        dm.prepare_data()
-        dm.setup("fit")
         start = load_module(cfg.init_from)
         start.norm = dm.norm  # the run reads images as its start did
         share = second_harmonic_share(start, dm.val_dataloader(), module.adapt)
@@ -374,9 +376,6 @@ def _checked_calibration(cfg: DictConfig, dm, module: FPPModule) -> dict:
     """Before adapting: each view's mean asked-for depth change of the starting net on the
     held-out scenes, refused (StaleCalibrationError) where the views disagree by more than
     ``adaptation.stale_mm``; returns them for the run's record."""
-    dm.prepare_data()
-    dm.setup("fit")
-    module.norm = dm.norm  # as the trainer's setup will set it
     offsets = view_offsets(module, dm.val_dataloader(), list(dm.spec.views))
     spread = None
     if cfg.adaptation.check_calibration:
