@@ -123,6 +123,13 @@ def view_depths(out: dict, maps: torch.Tensor, coarse_mm: torch.Tensor) -> torch
     return depth_from_offset(offset_from_phase(fraction, coarse, maps), maps)
 
 
+def candidates_kept(available: torch.Tensor) -> torch.Tensor:
+    """Which of the blend's candidates exist (B x (S + 1) x 1 x 1 bool) for ``available`` (B x
+    S bool): the views present, and the regressed depth always."""
+    keep = torch.cat([available, available.new_ones(available.shape[0], 1)], 1)
+    return keep[..., None, None]
+
+
 def fuse(out: dict, maps: torch.Tensor, norm, available=None) -> dict:
     """The net's outputs with ``depth`` the confidence-weighted blend of the views' depths and
     the regressed one (kept as ``regressed``, and in mm as ``regressed_mm``), ``view_depth_mm``
@@ -137,8 +144,7 @@ def fuse(out: dict, maps: torch.Tensor, norm, available=None) -> dict:
         candidates = torch.cat([norm.depth(depth_mm), out["depth"]], 1)
         logits = out["confidence"]
         if available is not None:
-            keep = torch.cat([available, available.new_ones(available.shape[0], 1)], 1)
-            logits = logits.masked_fill(~keep[..., None, None], float("-inf"))
+            logits = logits.masked_fill(~candidates_kept(available), float("-inf"))
         weights = inner_softmax(logits, 1)
         # a view's depth can be far off where it is unlit; its weight is then ~0, never NaN
         fused = (weights * torch.nan_to_num(candidates)).sum(1, keepdim=True)

@@ -27,7 +27,7 @@ import torch.nn.functional as F
 from kornia.metrics import ssim
 
 from odmv.classical.geometry import offset_from_coord
-from odmv.models.phase import lowest_order
+from odmv.models.phase import candidates_kept, lowest_order
 
 # the weights of the terms beyond the main depth loss, and the net output each term needs: a
 # weight is read only for a net with that output (each net lists its terms in LOSS_TERMS)
@@ -176,12 +176,11 @@ def _nearest_candidate_loss(out: dict, batch: dict, available) -> torch.Tensor:
         candidates = torch.cat([out["view_depth_mm"], out["regressed_mm"]], 1).float()
         err = (candidates - batch["depth_mm"]).abs().nan_to_num(float("inf"))
         if available is not None:  # a missing view is no candidate
-            keep = torch.cat([available, available.new_ones(available.shape[0], 1)], 1)
-            err = err.masked_fill(~keep[..., None, None], float("inf"))
+            err = err.masked_fill(~candidates_kept(available), float("inf"))
         known = torch.isfinite(batch["depth_mm"][:, 0])
         # where there is no truth, the regressed depth (always a candidate) stands in unused
         nearest = torch.where(known, err.argmin(1), err.shape[1] - 1)
     if available is not None:
-        logits = logits.masked_fill(~keep[..., None, None], float("-inf"))
+        logits = logits.masked_fill(~candidates_kept(available), float("-inf"))
     ce = F.cross_entropy(logits, nearest, reduction="none")  # B x H x W
     return (ce * known).sum() / known.sum().clamp_min(1)
