@@ -11,14 +11,17 @@ from __future__ import annotations
 import shutil
 import signal
 import sys
+import time
 from pathlib import Path
 
 import hydra
 import lightning as L
+import numpy as np
 import torch
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
+from odmv.classical.row import classical_depths
 from odmv.cli import (
     Interrupted,
     JobFailed,
@@ -198,6 +201,8 @@ def adapted_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
     # unless this is the supervised fine-tune that adaptation is measured against
     data = {"root": str(Path(root).resolve()), "render": False, "labels": bool(a.supervised)}
     data |= {"calibration": True, "val_from_train": a.val_share}  # the loss needs the maps
+    if a.get("target") == "classical":  # its targets are per scene, as stored: none turned
+        data["augment"] = None
     if a.replay and not a.supervised:  # the run's own training scenes, as it read them
         own = OmegaConf.to_container(out.data, resolve=True) | {"calibration": True}
         if not (Path(own["root"]) / MANIFEST).is_file():
@@ -295,6 +300,8 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
             calibration = _chosen_fit(cfg, dm, module)
         if ckpt is None:
             calibration |= _checked_calibration(cfg, dm, module)
+        if module.adapt.target == "classical":  # resumed runs decode again
+            calibration |= _classical_targets(dm, module)
     try:
         trainer.fit(module, datamodule=dm, ckpt_path=cfg.ckpt_path, weights_only=True)
     except SIGTERMException:  # Lightning's is a SystemExit without a status: exit 0
@@ -370,6 +377,22 @@ def _chosen_fit(cfg: DictConfig, dm, module: FPPModule) -> dict:
         f"harmonic{'s' if a.harmonics > 1 else ''} in {a.window_px} px windows"
     )
     return {"second_harmonic_share": round(share, 4), "fit": f"{a.window_px}:{a.harmonics}"}
+
+
+def _classical_targets(dm, module: FPPModule) -> dict:
+    """``adaptation.target=classical``: every scene of the user's dataset reconstructed by
+    phase shifting from its full sequences, at the net's size, set on ``module`` as its
+    targets; returns the share of pixels reconstructed for the run's record."""
+    t0 = time.perf_counter()
+    ids = [sid for split in dm.splits.values() for sid in split]
+    depths = classical_depths(dm.root, ids, (dm.spec.height_px, dm.spec.width_px))
+    module.classical_mm = {sid: torch.from_numpy(d.astype(np.float32)) for sid, d in depths.items()}
+    covered = float(np.mean([np.isfinite(d).mean() for d in depths.values()]))
+    rank_zero_print(
+        f"classical target: {len(ids)} scenes reconstructed by phase shifting in "
+        f"{time.perf_counter() - t0:.0f} s, {100 * covered:.0f} % of their pixels"
+    )
+    return {"classical_covered": round(covered, 4)}
 
 
 def _checked_calibration(cfg: DictConfig, dm, module: FPPModule) -> dict:

@@ -13,6 +13,7 @@ import torch
 from helpers import CLEAN, RIG, compose_config, tiny_overrides
 
 from odmv.classical.geometry import coord_from_depth, phase_from_depth, triangulation_maps
+from odmv.classical.row import classical_depths
 from odmv.data.dataset import DataError, check_spec, load_scene
 from odmv.io.manifest import (
     DEPTH_FILE,
@@ -304,6 +305,67 @@ def test_adapt_names_what_it_lacks(base_run, unlabelled):
     ):
         with pytest.raises(ValueError, match=message):
             adapted_config(compose_config("train", overrides), overrides)
+
+
+@pytest.fixture(scope="module")
+def sequences(tmp_path_factory):
+    """Six of twin240's scenes with every projector's full sequences, and without their
+    ground truth; their labelled copy beside them."""
+    out = tmp_path_factory.mktemp("sequences")
+    settings = SimSettings(
+        out=out / "labelled", scenes=6, height_px=64, width_px=64, seed=1, images="full",
+        fringe=FringeSpec(train_frequency=1),
+    )  # fmt: skip
+    simulate(settings, workers=1, progress=False)
+    bare = shutil.copytree(out / "labelled", out / "bare")
+    for scene in (bare / "scenes").iterdir():
+        for name in (DEPTH_FILE, LIT_FILE, PROJ_COORD_FILE, FOOTPRINT_FILE):
+            (scene / name).unlink(missing_ok=True)
+    return out / "labelled", bare
+
+
+def test_the_classical_target_is_reconstructed_from_the_sequences_alone(sequences):
+    labelled, bare = sequences
+    m = load_manifest(labelled)
+    ids = [s["id"] for s in m.scenes]
+    depths = classical_depths(bare, ids, (64, 64))
+    spec = check_spec(m, VIEW_NAMES, 64, None, None)
+    errors, covered = [], []
+    for sid in ids:
+        truth = load_scene(m, sid, spec)["depth_mm"][0]
+        ok = np.isfinite(depths[sid])
+        errors.append(np.abs(depths[sid] - truth)[ok])
+        covered.append(ok.mean())
+    # phase shifting on the noisy twin: a few hundredths of a mm where it reconstructs
+    assert np.mean(np.concatenate(errors)) < 0.05 and np.mean(covered) > 0.6
+
+
+def test_adapt_fits_the_classical_depth_of_the_users_sequences(base_run, sequences, tmp_path):
+    """adaptation.target=classical: the net fitted to the depth phase shifting reconstructs
+    from the unlabelled scenes' sequences, the share reconstructed recorded."""
+    out = tmp_path / "classical"
+    overrides = ["adapt=true", f"init_from={base_run}", f"root={sequences[1]}",
+                 f"paths.output_dir={out}", "adaptation.epochs=2", "adaptation.replay=0",
+                 "adaptation.target=classical", "adaptation.check_calibration=false",
+                 "trainer.enable_progress_bar=false"]  # fmt: skip
+    cfg = adapted_config(compose_config("train", overrides), overrides)
+    assert cfg.data.augment is None and cfg.data.labels is False
+    metrics = train(cfg)
+    record = json.loads((out / "metrics.json").read_text())
+    assert 0.3 < record["classical_covered"] <= 1 and np.isfinite(metrics["val/loss"])
+    logged = list(csv.DictReader((out / "csv" / "metrics.csv").open()))
+    fitted = [float(r["train/loss_classical"]) for r in logged if r.get("train/loss_classical")]
+    assert fitted and all(np.isfinite(fitted))
+
+
+def test_the_classical_target_needs_the_sequences(base_run, unlabelled, tmp_path):
+    overrides = ["adapt=true", f"init_from={base_run}", f"root={unlabelled}",
+                 f"paths.output_dir={tmp_path}", "adaptation.replay=0",
+                 "adaptation.target=classical", "adaptation.check_calibration=false"]  # fmt: skip
+    with pytest.raises(DataError, match=rf"{unlabelled}: the classical .*\(images=full\)"):
+        train(adapted_config(compose_config("train", overrides), overrides))
+    with pytest.raises(ValueError, match="adaptation.target: 'phase'"):
+        ConsistencySettings(target="phase")
 
 
 @pytest.mark.slow

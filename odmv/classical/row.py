@@ -33,7 +33,7 @@ from odmv.classical.fringe import (
 )
 from odmv.classical.geometry import triangulation_maps
 from odmv.classical.sequences import PspOptions
-from odmv.data.dataset import DataError, check_spec, load_scene, split_scenes
+from odmv.data.dataset import DataError, check_spec, load_scene, load_stack, split_scenes
 from odmv.data.subsets import MASKS
 from odmv.io.atomic import write_json
 from odmv.io.manifest import load_manifest
@@ -128,6 +128,29 @@ def reconstruct_scene(stack: np.ndarray, camera, projectors, options: PspOptions
     the projectors ``projectors`` (a list) -> depth (mm, NaN where rejected), using the
     sequences whose period the camera resolves."""
     return fused_depth(decode_views(stack, options, camera, projectors), camera, projectors)
+
+
+def classical_depths(root: str | Path, ids: list[str], size: tuple[int, int]) -> dict:
+    """Each scene of ``ids`` of the dataset at ``root`` (with its full sequences) reconstructed
+    classically from its images resized to ``size`` (H, W) -> {scene id: depth (mm, H x W,
+    NaN where nothing is reconstructed)}. Reads no labels: a user's captures will do."""
+    m = load_manifest(root)
+    if m.images != "full":
+        raise DataError(
+            f"{m.root}: the classical reconstruction needs the full phase-shifting sequences "
+            f"(images=full), not images={m.images}"
+        )
+    h, w = size
+    cam = m.rig.camera_at(w, h)
+    projectors = [m.rig.projectors()[v] for v in m.views]
+    n_f, n_s = len(m.fringe.periods_px), m.fringe.steps
+    coarse_first = np.argsort(m.fringe.periods_px)[::-1]
+    options = twin_options(m)
+    depths = {}
+    for sid in ids:
+        stack = load_stack(m, sid, m.views, h, w).reshape(len(m.views), n_f, n_s, h, w)
+        depths[sid] = reconstruct_scene(stack[:, coarse_first], cam, projectors, options)
+    return depths
 
 
 @dataclass(frozen=True)

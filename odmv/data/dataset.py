@@ -218,26 +218,10 @@ def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]
     Raises DataError naming a bad file."""
     d = m.scene_dir(sid)
     shape = (m.height_px, m.width_px)
-
-    def image(path: Path, channel: str) -> np.ndarray:
-        a = _read(path, [channel])[channel]
-        if a.shape != shape:
-            raise DataError(f"{path}: shape {a.shape} differs from the manifest's {shape}")
-        return a.astype(np.float32, copy=False)
-
-    def fringe(path: Path) -> np.ndarray:
-        a = image(path, FRINGE_CHANNEL)
-        if not np.isfinite(a).all():  # would train to NaN on every metric
-            raise DataError(f"{path}: {int((~np.isfinite(a)).sum())} non-finite intensity values")
-        if a.min() < NO_INTENSITY_BELOW:  # what a corrupted file decodes to
-            raise DataError(
-                f"{path}: intensities down to {a.min():.3g}, which no camera records (a "
-                "corrupted file?); render or convert the scene again"
-            )
-        return a
-
     fd = d / FRINGE_DIR
-    fringes = np.stack([fringe(fd / fringe_name(v, spec.frequency, spec.step)) for v in spec.views])
+    fringes = np.stack(
+        [_fringe(fd / fringe_name(v, spec.frequency, spec.step), shape) for v in spec.views]
+    )
     h, w = spec.height_px, spec.width_px
     if not spec.labels:
         return {"fringes": _resize(fringes, h, w, "area")}
@@ -274,18 +258,36 @@ def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]
         sc = np.stack([np.sin(phase), np.cos(phase)], 1).reshape(-1, h, w)
         out["phase_target"] = np.nan_to_num(sc, nan=0.0).astype(np.float32)
     if spec.with_stacks:
-        n_f, n_s = len(m.fringe.periods_px), m.fringe.steps
-        stack = np.stack(
-            [
-                np.stack(
-                    [fringe(fd / fringe_name(v, f, s)) for f in range(n_f) for s in range(n_s)]
-                )
-                for v in spec.views
-            ]
-        )
-        out["fringe_stack"] = np.stack([_resize(x, h, w, "area") for x in stack])
+        out["fringe_stack"] = load_stack(m, sid, spec.views, h, w)
         out["projector_coord"] = coord
     return out
+
+
+def _fringe(path: Path, shape: tuple[int, int]) -> np.ndarray:
+    """One fringe image (linear intensity), refused with a one-line DataError naming the file
+    where it is not of the manifest's ``shape`` or not what a camera records."""
+    a = _read(path, [FRINGE_CHANNEL])[FRINGE_CHANNEL]
+    if a.shape != shape:
+        raise DataError(f"{path}: shape {a.shape} differs from the manifest's {shape}")
+    if not np.isfinite(a).all():  # would train to NaN on every metric
+        raise DataError(f"{path}: {int((~np.isfinite(a)).sum())} non-finite intensity values")
+    if a.min() < NO_INTENSITY_BELOW:  # what a corrupted file decodes to
+        raise DataError(
+            f"{path}: intensities down to {a.min():.3g}, which no camera records (a "
+            "corrupted file?); render or convert the scene again"
+        )
+    return a.astype(np.float32, copy=False)
+
+
+def load_stack(m: Manifest, sid: str, views, h: int, w: int) -> np.ndarray:
+    """Every phase-shifted image of ``views`` of a scene of a dataset with the full sequences,
+    at h x w: (S, F x N, H, W) linear intensity, frequencies in the manifest's order, steps
+    within each. Reads no labels."""
+    fd, shape = m.scene_dir(sid) / FRINGE_DIR, (m.height_px, m.width_px)
+    n_f, n_s = len(m.fringe.periods_px), m.fringe.steps
+    names = [[fringe_name(v, f, s) for f in range(n_f) for s in range(n_s)] for v in views]
+    stacks = [np.stack([_fringe(fd / n, shape) for n in ns]) for ns in names]
+    return np.stack([_resize(x, h, w, "area") for x in stacks])
 
 
 def fingerprint(m: Manifest, ids: list[str], spec: SampleSpec) -> str:

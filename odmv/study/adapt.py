@@ -38,12 +38,20 @@ KEPT = (METRICS, ".hydra/config.yaml", "train.out")
 REFUSED = "refused.txt"  # a fine-tune the calibration check stopped: its one-line reason
 
 
-def training_set(source: Path, shift: Shift, scenes: int = SCENES) -> Path:
-    """The shifted twin's training scenes (rendered on first use), all labelled train."""
+def training_set(source: Path, shift: Shift, scenes: int = SCENES, images="training") -> Path:
+    """The shifted twin's training scenes (rendered on first use), all labelled train; with
+    ``images`` full, the same scenes with every projector's full sequences."""
     seed = source_seed(source) + SEED_OFFSET
-    name = f"adapt{scenes}-seed{seed}-{shift.label().replace(':', '_')}"
-    settings = twin_settings(source, name, scenes, seed, "training", shift, split="train")
+    kind = "" if images == "training" else f"-{images}"
+    name = f"adapt{scenes}-seed{seed}-{shift.label().replace(':', '_')}{kind}"
+    settings = twin_settings(source, name, scenes, seed, images, shift, split="train")
     return twin_dataset(source, settings)
+
+
+def images_read(settings: list[str]) -> str:
+    """The images a variant's adaptation reads: the full sequences where it fits the net to
+    their classical reconstruction, else the one image per projector the net sees."""
+    return "full" if "adaptation.target=classical" in settings else "training"
 
 
 def fine_tune(
@@ -122,8 +130,9 @@ def measure(cfg, runs_dir: Path, out: Path, threads, train: list[str]) -> list[d
                 }
                 name = f"{base.name}-{variant}-{label.replace(':', '_')}"
                 folder = runs_dir / name
-                print(f"{name}: adapting to {data.name}", flush=True)
-                result = fine_tune(train, base, data, folder, False, threads, [*extra, *settings])
+                own = training_set(source, shift, cfg.scenes, images_read(settings))
+                print(f"{name}: adapting to {own.name}", flush=True)
+                result = fine_tune(train, base, own, folder, False, threads, [*extra, *settings])
                 _keep(folder, out / "runs" / name)
                 if isinstance(result, str):
                     row["adapted_refused"] = result

@@ -39,6 +39,9 @@ import torch.nn.functional as F
 
 from odmv.classical.geometry import offset_from_depth, phase_from_depth
 
+#: what adaptation fits the net to (ConsistencySettings.target)
+TARGETS = ("fringes", "classical")
+
 
 @dataclass(frozen=True)
 class ConsistencySettings:
@@ -53,7 +56,11 @@ class ConsistencySettings:
     views' mean asked-for depth changes above which the calibration is taken to be stale
     (:func:`view_offsets_mm`). ``replay``: the weight of the starting net's own loss on
     batches of its own (labelled) training scenes, beside every batch of the user's: what it
-    knew of the twin is kept (0: none)."""
+    knew of the twin is kept (0: none). ``target``: ``fringes``, this module's loss on the one
+    image per projector the net reads; ``classical``, the depth that phase shifting
+    reconstructs from the user's full sequences (odmv.classical), where it reconstructs one,
+    in the run's own depth loss: a label without ground truth, for users who capture the
+    sequences of their adaptation scenes."""
 
     window_px: int = 5
     harmonics: int | str = 1
@@ -62,8 +69,11 @@ class ConsistencySettings:
     anchor: float = 0.02
     stale_mm: float = 0.05
     replay: float = 1.0
+    target: str = "fringes"
 
     def __post_init__(self):
+        if self.target not in TARGETS:
+            raise ValueError(f"adaptation.target: {self.target!r}; choose from {list(TARGETS)}")
         if self.window_px < 3 or self.window_px % 2 == 0:
             raise ValueError(f"adaptation.window_px: {self.window_px} must be odd and at least 3")
         if self.harmonics == "auto":

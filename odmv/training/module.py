@@ -30,7 +30,7 @@ from odmv.models.phase import fuse, has_phase_head
 from odmv.training.checkpoint import CheckpointError, check_weights, read_checkpoint
 from odmv.training.consistency import ConsistencySettings, consistency_loss
 from odmv.training.distill import DistillSettings, distill_terms
-from odmv.training.losses import LossWeights, composite_loss
+from odmv.training.losses import LossWeights, composite_loss, depth_loss
 from odmv.training.metrics import (
     SUBSETS,
     DepthErrors,
@@ -121,6 +121,9 @@ class FPPModule(L.LightningModule):
         # loss; there is no ground truth, so no metric is computed
         self.adapt = ConsistencySettings.of(adapt) if adapt else None
         object.__setattr__(self, "_base", None)  # that net, frozen, off the module tree
+        # adaptation.target=classical: {scene id: depth (mm, NaN where none)} that phase
+        # shifting reconstructs from the user's sequences (set by the training app)
+        self.classical_mm: dict | None = None
         # distillation (distill_from=RUN): the teacher's outputs as targets beside the truth
         self.distill = DistillSettings.of(distill) if distill else None
         object.__setattr__(self, "_teacher_net", None)  # frozen, off the module tree
@@ -175,15 +178,24 @@ class FPPModule(L.LightningModule):
         return self._base
 
     def adapt_terms(self, batch: dict, out: dict) -> dict[str, torch.Tensor]:
-        """Label-free adaptation's loss terms: ``consistency`` (odmv.training.consistency),
-        ``phase_rad`` (its weighted RMS phase error), ``change_mm`` (the mean absolute change
-        from the starting net) and their sum ``loss``, consistency + anchor x change."""
+        """Label-free adaptation's loss terms: ``consistency`` (odmv.training.consistency) and
+        ``phase_rad`` (its weighted RMS phase error), or with ``target=classical`` the run's
+        depth loss against the classical depth (``classical``) and the share of pixels that
+        have one (``covered``); ``change_mm`` (the mean absolute change from the starting
+        net) and their sum ``loss``, the fit + anchor x change."""
         depth_mm = self.depth_mm(out)
-        linear = self.norm.intensity(batch["fringes"].float())
-        fit = consistency_loss(
-            depth_mm, linear, batch["calibration"], self.adapt, batch.get("available")
-        )
-        terms = {"consistency": fit["loss"], "phase_rad": fit["phase_rad"], "loss": fit["loss"]}
+        if self.adapt.target == "classical":
+            target = self._classical_target(batch["scene_id"], depth_mm)
+            fit = depth_loss(out["depth"], self.norm.depth(target), self.weights)["loss"]
+            covered = torch.isfinite(target).float().mean()
+            terms = {"classical": fit, "covered": covered, "loss": fit}
+        else:
+            linear = self.norm.intensity(batch["fringes"].float())
+            fit = consistency_loss(
+                depth_mm, linear, batch["calibration"], self.adapt, batch.get("available")
+            )
+            terms = {"consistency": fit["loss"], "phase_rad": fit["phase_rad"]}
+            terms["loss"] = fit["loss"]
         start = self._start_net()
         if start is not None:
             with torch.no_grad():
@@ -191,6 +203,13 @@ class FPPModule(L.LightningModule):
             terms["change_mm"] = (depth_mm - start_mm).abs().mean()
             terms["loss"] = terms["loss"] + self.adapt.anchor * terms["change_mm"]
         return terms
+
+    def _classical_target(self, scene_ids, like: torch.Tensor) -> torch.Tensor:
+        """The classical depth (mm, NaN where none) of a batch's scenes, shaped like ``like``."""
+        if self.classical_mm is None:
+            raise RuntimeError("adaptation.target=classical: no classical depth was decoded")
+        maps = [torch.as_tensor(self.classical_mm[s]) for s in scene_ids]
+        return torch.stack(maps)[:, None].to(like)
 
     def _teacher(self) -> FPPModule:
         """The frozen teacher of distillation (loaded at first use), checked to read the same
