@@ -399,7 +399,8 @@ def _checked_calibration(cfg: DictConfig, dm, module: FPPModule) -> dict:
     """Before adapting: each view's mean asked-for depth change of the starting net on the
     held-out scenes, refused (StaleCalibrationError) where the views disagree by more than
     ``adaptation.stale_mm``; returns them for the run's record."""
-    offsets = view_offsets(module, dm.val_dataloader(), list(dm.spec.views))
+    views = list(dm.spec.views)
+    offsets = view_offsets(module, dm.val_dataloader(), views, cfg.adaptation.window_px)
     spread = None
     if cfg.adaptation.check_calibration:
         spread = check_calibration(offsets, cfg.adaptation.stale_mm, dm.root)

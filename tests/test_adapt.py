@@ -298,6 +298,29 @@ def test_adapt_without_the_twin_to_replay_says_so(base_run, unlabelled, tmp_path
     assert "replay" not in cfg.data or not cfg.data.replay
 
 
+def test_the_calibration_check_measures_with_the_sinusoid_fit(base_run, unlabelled, tmp_path):
+    """Whatever fit the adaptation chose, the check's per-view offsets come from the sinusoid
+    fit in adaptation.window_px (the two-harmonic fit's are too unsteady to compare views)."""
+    from dataclasses import replace
+
+    from odmv.train import build
+    from odmv.training.adaptation import view_offsets
+
+    overrides = ["adapt=true", f"init_from={base_run}", f"root={unlabelled}",
+                 f"paths.output_dir={tmp_path}", "adaptation.replay=0"]  # fmt: skip
+    dm, module, _ = build(adapted_config(compose_config("train", overrides), overrides))
+    dm.prepare_data()
+    dm.setup("fit")
+    module.norm = dm.norm
+
+    def offsets(harmonics, fit_window, check_window):
+        module.adapt = replace(module.adapt, harmonics=harmonics, window_px=fit_window)
+        return view_offsets(module, dm.val_dataloader(), list(dm.spec.views), check_window)
+
+    sinusoid = offsets(1, 5, 5)
+    assert offsets(2, 9, 5) == sinusoid and offsets(1, 9, 9) != sinusoid
+
+
 def test_adapt_names_what_it_lacks(base_run, unlabelled):
     for overrides, message in (
         (["adapt=true", f"root={unlabelled}"], "init_from=RUN"),
