@@ -35,7 +35,7 @@ from odmv.cli import (
     tool,
 )
 from odmv.io.atomic import write_json, write_text
-from odmv.io.manifest import MANIFEST
+from odmv.io.manifest import MANIFEST, load_manifest
 from odmv.io.runfolder import CONFIG, METRICS, portable, portable_record
 from odmv.training.adaptation import check_calibration, second_harmonic_share, view_offsets
 from odmv.training.checkpoint import (
@@ -46,7 +46,7 @@ from odmv.training.checkpoint import (
     initial_weights,
     read_checkpoint,
 )
-from odmv.training.consistency import SECOND_HARMONIC_SHARE, chosen_fit
+from odmv.training.consistency import SECOND_HARMONIC_SHARE, chosen_fit, chosen_target
 from odmv.training.ema import WeightEMA
 from odmv.training.module import FPPModule, load_module
 from odmv.training.pace import CpuPace, EpochLine, busy_cores_note, heavy_on_cpu
@@ -201,7 +201,7 @@ def adapted_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
     # unless this is the supervised fine-tune that adaptation is measured against
     data = {"root": str(Path(root).resolve()), "render": False, "labels": bool(a.supervised)}
     data |= {"calibration": True, "val_from_train": a.val_share}  # the loss needs the maps
-    if a.get("target") == "classical":  # its targets are per scene, as stored: none turned
+    if a.get("target") != "fringes":  # classical targets are per scene, as stored: none turned
         data["augment"] = None
     if a.replay and not a.supervised:  # the run's own training scenes, as it read them
         own = OmegaConf.to_container(out.data, resolve=True) | {"calibration": True}
@@ -296,8 +296,11 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
         dm.prepare_data()
         dm.setup("fit")
         module.norm = dm.norm  # as the trainer's setup will set it
-        if module.adapt.harmonics == "auto":  # resumed runs choose again
-            calibration = _chosen_fit(cfg, dm, module)
+        module.adapt = chosen_target(module.adapt, load_manifest(dm.root).images)
+        calibration = {"target": module.adapt.target}
+        if module.adapt.target == "fringes" and module.adapt.harmonics == "auto":
+            # resumed runs choose again
+            calibration |= _chosen_fit(cfg, dm, module)
         if ckpt is None:
             calibration |= _checked_calibration(cfg, dm, module)
         if module.adapt.target == "classical":  # resumed runs decode again

@@ -242,6 +242,7 @@ def test_adapt_fine_tunes_a_run_on_fringes_alone(base_run, unlabelled, twin240, 
     assert record["adapted_from"].endswith(".ckpt") and set(record["view_offsets_mm"]) == set(
         VIEW_NAMES
     )
+    assert record["target"] == "fringes"  # auto, on one image per projector
     assert np.isfinite(metrics["val/loss"])
     # harmonics=auto (the default) chose a fit and trains as a run that names it
     window, harmonics = record["fit"].split(":")
@@ -364,18 +365,20 @@ def test_the_classical_target_is_reconstructed_from_the_sequences_alone(sequence
 
 
 def test_adapt_fits_the_classical_depth_of_the_users_sequences(base_run, sequences, tmp_path):
-    """adaptation.target=classical: the net fitted to the depth phase shifting reconstructs
-    from the unlabelled scenes' sequences, the share reconstructed recorded."""
+    """adaptation.target=auto (the default) on a dataset with the full sequences: the net
+    fitted to the depth phase shifting reconstructs from the unlabelled scenes' sequences, the
+    share reconstructed recorded."""
     out = tmp_path / "classical"
     overrides = ["adapt=true", f"init_from={base_run}", f"root={sequences[1]}",
                  f"paths.output_dir={out}", "adaptation.epochs=2", "adaptation.replay=0",
-                 "adaptation.target=classical", "adaptation.check_calibration=false",
+                 "adaptation.check_calibration=false",
                  "trainer.enable_progress_bar=false"]  # fmt: skip
     cfg = adapted_config(compose_config("train", overrides), overrides)
     assert cfg.data.augment is None and cfg.data.labels is False
     metrics = train(cfg)
     record = json.loads((out / "metrics.json").read_text())
-    assert 0.3 < record["classical_covered"] <= 1 and np.isfinite(metrics["val/loss"])
+    assert record["target"] == "classical" and 0.3 < record["classical_covered"] <= 1
+    assert np.isfinite(metrics["val/loss"])
     logged = list(csv.DictReader((out / "csv" / "metrics.csv").open()))
     fitted = [float(r["train/loss_classical"]) for r in logged if r.get("train/loss_classical")]
     assert fitted and all(np.isfinite(fitted))

@@ -53,7 +53,7 @@ def view_offsets(
     ``max_batches`` batches of ``loader``, by view name (``views``: the batches' views),
     measured with the sinusoid fit in ``window_px`` whatever fit the adaptation uses: a bias
     common to every view cancels in the check, and the sinusoid's per-view means are the
-    steadiest (under projector gamma 2.2 the views' spread is 0.007 mm with it and 0.04-0.07
+    steadiest (under projector gamma 2.2 the views' spread is 0.007-0.020 mm with it and 0.04-0.07
     mm with the 9 px two-harmonic fit, whose 0.05 mm threshold it crossed; adapt notebook
     round 9)."""
     fit = replace(module.adapt, harmonics=1, window_px=window_px)

@@ -39,8 +39,9 @@ import torch.nn.functional as F
 
 from odmv.classical.geometry import offset_from_depth, phase_from_depth
 
-#: what adaptation fits the net to (ConsistencySettings.target)
-TARGETS = ("fringes", "classical")
+#: what adaptation fits the net to (ConsistencySettings.target; auto: classical where the
+#: user's dataset holds the full sequences, else fringes)
+TARGETS = ("auto", "fringes", "classical")
 
 
 @dataclass(frozen=True)
@@ -60,7 +61,8 @@ class ConsistencySettings:
     image per projector the net reads; ``classical``, the depth that phase shifting
     reconstructs from the user's full sequences (odmv.classical), where it reconstructs one,
     in the run's own depth loss: a label without ground truth, for users who capture the
-    sequences of their adaptation scenes."""
+    sequences of their adaptation scenes; ``auto``, classical where the dataset holds them
+    (:func:`chosen_target`)."""
 
     window_px: int = 5
     harmonics: int | str = 1
@@ -69,7 +71,7 @@ class ConsistencySettings:
     anchor: float = 0.02
     stale_mm: float = 0.05
     replay: float = 1.0
-    target: str = "fringes"
+    target: str = "auto"
 
     def __post_init__(self):
         if self.target not in TARGETS:
@@ -180,6 +182,15 @@ def chosen_fit(settings: ConsistencySettings, share: float) -> ConsistencySettin
     if share < SECOND_HARMONIC_SHARE:
         return replace(settings, harmonics=1)
     return replace(settings, harmonics=2, window_px=2 * settings.window_px - 1)
+
+
+def chosen_target(settings: ConsistencySettings, images: str) -> ConsistencySettings:
+    """``target=auto`` resolved by the user's dataset's ``images``: the classical
+    reconstruction where it holds the full sequences (closer to the truth than the fringe
+    fit on every shift measured: adapt notebook round 10), else the fringe fit."""
+    if settings.target != "auto":
+        return settings
+    return replace(settings, target="classical" if images == "full" else "fringes")
 
 
 def _weights(amplitude, r2, settings: ConsistencySettings, available=None) -> torch.Tensor:
