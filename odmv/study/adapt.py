@@ -130,7 +130,7 @@ def measure(cfg, runs_dir: Path, out: Path, threads, train: list[str]) -> list[d
                 }
                 name = f"{base.name}-{variant}-{label.replace(':', '_')}"
                 folder = runs_dir / name
-                own = training_set(source, shift, cfg.scenes, images_read(settings))
+                own = training_set(source, shift, cfg.scenes, images_read([*extra, *settings]))
                 print(f"{name}: adapting to {own.name}", flush=True)
                 result = fine_tune(train, base, own, folder, False, threads, [*extra, *settings])
                 _keep(folder, out / "runs" / name)
