@@ -35,7 +35,7 @@ from odmv.cli import (
     tool,
 )
 from odmv.io.atomic import write_json, write_text
-from odmv.io.manifest import MANIFEST, load_manifest
+from odmv.io.manifest import MANIFEST
 from odmv.io.runfolder import CONFIG, METRICS, portable, portable_record
 from odmv.training.adaptation import check_calibration, second_harmonic_share, view_offsets
 from odmv.training.checkpoint import (
@@ -296,7 +296,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
         dm.prepare_data()
         dm.setup("fit")
         module.norm = dm.norm  # as the trainer's setup will set it
-        module.adapt = chosen_target(module.adapt, load_manifest(dm.root).images)
+        module.adapt = chosen_target(module.adapt, dm.manifest.images)
         calibration = {"target": module.adapt.target}
         if module.adapt.target == "fringes" and module.adapt.harmonics == "auto":
             # resumed runs choose again

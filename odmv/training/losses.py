@@ -176,11 +176,12 @@ def _nearest_candidate_loss(out: dict, batch: dict, available) -> torch.Tensor:
         candidates = torch.cat([out["view_depth_mm"], out["regressed_mm"]], 1).float()
         err = (candidates - batch["depth_mm"]).abs().nan_to_num(float("inf"))
         if available is not None:  # a missing view is no candidate
-            err = err.masked_fill(~candidates_kept(available), float("inf"))
+            missing = ~candidates_kept(available)
+            err = err.masked_fill(missing, float("inf"))
         known = torch.isfinite(batch["depth_mm"][:, 0])
         # where there is no truth, the regressed depth (always a candidate) stands in unused
         nearest = torch.where(known, err.argmin(1), err.shape[1] - 1)
     if available is not None:
-        logits = logits.masked_fill(~candidates_kept(available), float("-inf"))
+        logits = logits.masked_fill(missing, float("-inf"))
     ce = F.cross_entropy(logits, nearest, reduction="none")  # B x H x W
     return (ce * known).sum() / known.sum().clamp_min(1)
