@@ -301,10 +301,10 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
         if module.adapt.target == "fringes" and module.adapt.harmonics == "auto":
             # resumed runs choose again
             calibration |= _chosen_fit(cfg, dm, module)
-        if ckpt is None:
-            calibration |= _checked_calibration(cfg, dm, module)
         if module.adapt.target == "classical":  # resumed runs decode again
             calibration |= _classical_targets(dm, module)
+        if ckpt is None:
+            calibration |= _checked_calibration(cfg, dm, module)
     try:
         trainer.fit(module, datamodule=dm, ckpt_path=cfg.ckpt_path, weights_only=True)
     except SIGTERMException:  # Lightning's is a SystemExit without a status: exit 0
@@ -388,7 +388,7 @@ def _classical_targets(dm, module: FPPModule) -> dict:
     targets; returns the share of pixels reconstructed for the run's record."""
     t0 = time.perf_counter()
     ids = [sid for split in dm.splits.values() for sid in split]
-    depths = classical_depths(dm.root, ids, (dm.spec.height_px, dm.spec.width_px))
+    depths = classical_depths(dm.manifest, ids, (dm.spec.height_px, dm.spec.width_px))
     module.classical_mm = {sid: torch.from_numpy(d.astype(np.float32)) for sid, d in depths.items()}
     covered = float(np.mean([np.isfinite(d).mean() for d in depths.values()]))
     rank_zero_print(

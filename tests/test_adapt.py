@@ -352,7 +352,7 @@ def test_the_classical_target_is_reconstructed_from_the_sequences_alone(sequence
     labelled, bare = sequences
     m = load_manifest(labelled)
     ids = [s["id"] for s in m.scenes]
-    depths = classical_depths(bare, ids, (64, 64))
+    depths = classical_depths(load_manifest(bare), ids, (64, 64))
     spec = check_spec(m, VIEW_NAMES, 64, None, None)
     errors, covered = [], []
     for sid in ids:

@@ -36,7 +36,7 @@ from odmv.classical.sequences import PspOptions
 from odmv.data.dataset import DataError, check_spec, load_scene, load_stack, split_scenes
 from odmv.data.subsets import MASKS
 from odmv.io.atomic import write_json
-from odmv.io.manifest import load_manifest
+from odmv.io.manifest import Manifest, load_manifest
 from odmv.io.runfolder import METRICS, portable_record
 from odmv.training.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_suffix
 from odmv.training.module import subset_masks, write_test_outputs
@@ -130,11 +130,11 @@ def reconstruct_scene(stack: np.ndarray, camera, projectors, options: PspOptions
     return fused_depth(decode_views(stack, options, camera, projectors), camera, projectors)
 
 
-def classical_depths(root: str | Path, ids: list[str], size: tuple[int, int]) -> dict:
-    """Each scene of ``ids`` of the dataset at ``root`` (with its full sequences) reconstructed
-    classically from its images resized to ``size`` (H, W) -> {scene id: depth (mm, H x W,
-    NaN where nothing is reconstructed)}. Reads no labels: a user's captures will do."""
-    m = load_manifest(root)
+def classical_depths(m: Manifest, ids: list[str], size: tuple[int, int]) -> dict:
+    """Each scene of ``ids`` of the dataset of manifest ``m`` (with its full sequences)
+    reconstructed classically from its images resized to ``size`` (H, W) -> {scene id: depth
+    (mm, H x W, NaN where nothing is reconstructed)}. Reads no labels: a user's captures will
+    do."""
     if m.images != "full":
         raise DataError(
             f"{m.root}: the classical reconstruction needs the full phase-shifting sequences "

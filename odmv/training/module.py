@@ -208,8 +208,7 @@ class FPPModule(L.LightningModule):
         """The classical depth (mm, NaN where none) of a batch's scenes, shaped like ``like``."""
         if self.classical_mm is None:
             raise RuntimeError("adaptation.target=classical: no classical depth was decoded")
-        maps = [torch.as_tensor(self.classical_mm[s]) for s in scene_ids]
-        return torch.stack(maps)[:, None].to(like)
+        return torch.stack([self.classical_mm[s] for s in scene_ids])[:, None].to(like)
 
     def _teacher(self) -> FPPModule:
         """The frozen teacher of distillation (loaded at first use), checked to read the same
