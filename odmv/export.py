@@ -24,7 +24,9 @@ def export(cfg: DictConfig) -> None:
     print(f"{path}: ONNX Runtime matches PyTorch within {diff:.2e} mm")
     rig, which = export_rig(cfg.ckpt_path, cfg.out, cfg.calibration)
     print(f"{rig}: what the net reads from the rig, for {which}")
-    copies = export_precisions(cfg.ckpt_path, path, list(cfg.precisions), cfg.check_scenes)
+    copies = export_precisions(
+        cfg.ckpt_path, path, list(cfg.precisions), cfg.check_scenes, cfg.int8_keep_float
+    )
     for precision, (copy, mean_mm, max_mm) in copies.items():
         print(
             f"{copy}: {precision} against float32 on {cfg.check_scenes} validation scenes "

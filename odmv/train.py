@@ -12,6 +12,7 @@ import shutil
 import signal
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import hydra
@@ -35,7 +36,7 @@ from odmv.cli import (
     tool,
 )
 from odmv.io.atomic import write_json, write_text
-from odmv.io.manifest import MANIFEST
+from odmv.io.manifest import MANIFEST, load_manifest
 from odmv.io.runfolder import CONFIG, METRICS, portable, portable_record
 from odmv.training.adaptation import check_calibration, second_harmonic_share, view_offsets
 from odmv.training.checkpoint import (
@@ -46,7 +47,12 @@ from odmv.training.checkpoint import (
     initial_weights,
     read_checkpoint,
 )
-from odmv.training.consistency import SECOND_HARMONIC_SHARE, chosen_fit, chosen_target
+from odmv.training.consistency import (
+    SECOND_HARMONIC_SHARE,
+    chosen_fit,
+    resolved_adaptation,
+    target_for,
+)
 from odmv.training.ema import WeightEMA
 from odmv.training.module import FPPModule, load_module
 from odmv.training.pace import CpuPace, EpochLine, busy_cores_note, heavy_on_cpu
@@ -194,14 +200,17 @@ def adapted_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
     root = cfg.get("root")
     if not root:
         raise ValueError("adapt: root=DATASET names the fringe images to adapt to")
-    a = cfg.adaptation
+    adaptation = OmegaConf.to_container(cfg.adaptation, resolve=True)
+    images = load_manifest(root).images if adaptation["target"] == "auto" else None
+    a = OmegaConf.create(resolved_adaptation(adaptation, images))
     out = _moved_targets(OmegaConf.load(saved))
     out.paths = OmegaConf.to_container(cfg.paths, resolve=True)
     # the dataset: read, never rendered; without its ground truth (its files may be absent)
     # unless this is the supervised fine-tune that adaptation is measured against
     data = {"root": str(Path(root).resolve()), "render": False, "labels": bool(a.supervised)}
     data |= {"calibration": True, "val_from_train": a.val_share}  # the loss needs the maps
-    if a.get("target") != "fringes":  # classical targets are per scene, as stored: none turned
+    # classical targets are per scene, as stored: none turned; auto as well (how it was measured)
+    if adaptation["target"] != "fringes":
         data["augment"] = None
     if a.replay and not a.supervised:  # the run's own training scenes, as it read them
         own = OmegaConf.to_container(out.data, resolve=True) | {"calibration": True}
@@ -230,7 +239,9 @@ def adapted_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
         "patience": a.patience,
     }
     out.optimized_metric = monitor
-    _override(out, cfg, overrides, _ADAPT_OWN, f"the run in {run}", "adapt")
+    # adaptation's own settings are in out.adaptation already, their autos resolved
+    own = [o for o in overrides if not o.lstrip("+~").startswith("adaptation.")]
+    _override(out, cfg, own, _ADAPT_OWN, f"the run in {run}", "adapt")
     return out
 
 
@@ -296,7 +307,8 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
         dm.prepare_data()
         dm.setup("fit")
         module.norm = dm.norm  # as the trainer's setup will set it
-        module.adapt = chosen_target(module.adapt, dm.manifest.images)
+        target = target_for(module.adapt.target, dm.manifest.images)
+        module.adapt = replace(module.adapt, target=target)
         calibration = {"target": module.adapt.target}
         if module.adapt.target == "fringes" and module.adapt.harmonics == "auto":
             # resumed runs choose again

@@ -31,6 +31,7 @@ from odmv.train import adapted_config, train
 from odmv.training.adaptation import StaleCalibrationError, check_calibration
 from odmv.training.consistency import (
     SECOND_HARMONIC_SHARE,
+    TARGET_DEFAULTS,
     ConsistencySettings,
     chosen_fit,
     consistency_loss,
@@ -382,6 +383,24 @@ def test_adapt_fits_the_classical_depth_of_the_users_sequences(base_run, sequenc
     logged = list(csv.DictReader((out / "csv" / "metrics.csv").open()))
     fitted = [float(r["train/loss_classical"]) for r in logged if r.get("train/loss_classical")]
     assert fitted and all(np.isfinite(fitted))
+
+
+def test_auto_settings_follow_the_target(base_run, unlabelled, sequences, tmp_path):
+    """lr, anchor and replay left at auto take the chosen target's defaults; a value given on
+    the command line wins; the supervised fine-tune takes its own lr."""
+    start = ["adapt=true", f"init_from={base_run}", f"paths.output_dir={tmp_path}"]
+    for root, extra, defaults, given in (
+        (unlabelled, [], "fringes", {}),
+        (sequences[1], [], "classical", {}),
+        (sequences[1], ["adaptation.replay=0"], "classical", {"replay": 0}),
+        (sequences[0], ["adaptation.supervised=true"], "supervised", {}),
+    ):
+        overrides = [*start, f"root={root}", *extra]
+        cfg = adapted_config(compose_config("train", overrides), overrides)
+        want = TARGET_DEFAULTS[defaults] | given
+        assert {k: cfg.adaptation[k] for k in want} == want and cfg.optimizer.lr == want["lr"]
+        assert cfg.adaptation.target == ("fringes" if root == unlabelled else "classical")
+        assert bool(cfg.data.get("replay")) == (want["replay"] > 0 and defaults != "supervised")
 
 
 def test_the_classical_target_needs_the_sequences(base_run, unlabelled, tmp_path):

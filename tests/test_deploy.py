@@ -5,6 +5,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import onnx
 import onnxruntime as ort
 import pytest
 import torch
@@ -14,6 +15,7 @@ from hydra.utils import instantiate
 from odmv.config import compose_train, model_configs
 from odmv.data.dataset import SampleSpec, load_scene
 from odmv.deploy.onnx import METADATA_KEY
+from odmv.deploy.quantize import INT8_OPS
 from odmv.export import export
 from odmv.io.manifest import load_manifest
 from odmv.models import ODMVNet, count_parameters
@@ -97,7 +99,7 @@ def test_the_light_net_distils_exports_as_float32_and_int8_and_predicts(
     cfg = compose_config(
         "export",
         [f"ckpt_path={metrics['best_checkpoint']}", f"out={tmp_path / 'onnx'}", "check_scenes=2"]
-        + ["precisions=[float32,int8]"],
+        + ["precisions=[float32,int8]", "int8_keep_float=1"],
     )
     export(cfg)
     scene = tiny_dataset / "scenes" / "000004"
@@ -108,6 +110,14 @@ def test_the_light_net_distils_exports_as_float32_and_int8_and_predicts(
         session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
         meta = json.loads(session.get_modelmeta().custom_metadata_map[METADATA_KEY])
         assert meta["precision"] == precision and meta["views"] == student.hparams.views
+        if precision == "int8":  # the convolution int8 costs most stays float32, the rest not
+            graph = onnx.load(str(path)).graph
+            made_by = {out: node.op_type for node in graph.node for out in node.output}
+            convs = [n for n in graph.node if n.op_type in INT8_OPS]
+            quantized = [n.name for n in convs if made_by.get(n.input[1]) == "DequantizeLinear"]
+            kept = meta["float32_convolutions"]
+            assert len(kept) == 1 and kept[0] in {n.name for n in convs} - set(quantized)
+            assert quantized
         depth[precision] = predicted_depth(path, scene, tmp_path / precision)
     assert np.isfinite(depth["int8"]).all() and np.abs(depth["int8"] - depth["float32"]).mean() < 2
 

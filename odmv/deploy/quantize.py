@@ -53,17 +53,20 @@ def scene_feeds(ckpt_path: str | Path, n: int) -> dict[str, list[dict]]:
     return feeds
 
 
-def _with_metadata(model, source, precision: str):
-    """``model`` with ``source``'s odmv metadata, its precision added."""
+def _with_metadata(model, source, precision: str, kept: list[str]):
+    """``model`` with ``source``'s odmv metadata, its precision and the convolutions it kept
+    float32 added."""
     meta = json.loads(next(p.value for p in source.metadata_props if p.key == METADATA_KEY))
     del model.metadata_props[:]
     entry = model.metadata_props.add()
-    entry.key, entry.value = METADATA_KEY, json.dumps(meta | {"precision": precision})
+    meta |= {"precision": precision, "float32_convolutions": kept}
+    entry.key, entry.value = METADATA_KEY, json.dumps(meta)
     return model
 
 
-def int8_model(path: Path, feeds: list[dict]):
-    """``path`` (a float32 graph) statically quantized to int8, calibrated on ``feeds``."""
+def int8_model(path: Path, feeds: list[dict], keep_float=(), only=None):
+    """``path`` (a float32 graph) statically quantized to int8, calibrated on ``feeds``; the
+    convolutions named in ``keep_float`` stay float32; ``only``: quantize those alone."""
     import onnx
     from onnxruntime.quantization import (
         CalibrationDataReader,
@@ -71,7 +74,6 @@ def int8_model(path: Path, feeds: list[dict]):
         QuantType,
         quantize_static,
     )
-    from onnxruntime.quantization.shape_inference import quant_pre_process
 
     class Reader(CalibrationDataReader):
         def __init__(self):
@@ -81,11 +83,9 @@ def int8_model(path: Path, feeds: list[dict]):
             return next(self.left, None)
 
     with tempfile.TemporaryDirectory(prefix="odmv-int8-") as tmp:
-        prepared, quantized = Path(tmp, "prepared.onnx"), Path(tmp, "int8.onnx")
-        # the exporter's dynamic batch leaves symbolic shapes the symbolic pass cannot finish
-        quant_pre_process(str(path), str(prepared), skip_symbolic_shape=True)
+        quantized = Path(tmp, "int8.onnx")
         quantize_static(
-            str(prepared),
+            str(_prepared(path, Path(tmp))),
             str(quantized),
             Reader(),
             quant_format=QuantFormat.QDQ,
@@ -93,8 +93,37 @@ def int8_model(path: Path, feeds: list[dict]):
             weight_type=QuantType.QInt8,
             per_channel=True,
             op_types_to_quantize=list(INT8_OPS),
+            nodes_to_quantize=list(only) if only is not None else None,
+            nodes_to_exclude=list(keep_float),
         )
         return onnx.load(str(quantized))
+
+
+def _prepared(path: Path, tmp: Path) -> Path:
+    """``path`` through the quantizer's shape inference and graph clean-up."""
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    prepared = tmp / "prepared.onnx"
+    # the exporter's dynamic batch leaves symbolic shapes the symbolic pass cannot finish
+    quant_pre_process(str(path), str(prepared), skip_symbolic_shape=True)
+    return prepared
+
+
+def conv_sensitivity(path: Path, feeds: dict[str, list[dict]]) -> dict[str, float]:
+    """Each convolution's cost of int8 alone: the mean |depth difference| (mm) from the
+    float32 graph ``path`` on ``feeds["check"]`` with that convolution quantized and nothing
+    else (calibrated on ``feeds["calibration"]``), largest first."""
+    import onnx
+
+    with tempfile.TemporaryDirectory(prefix="odmv-int8-") as tmp:
+        prepared = onnx.load(str(_prepared(path, Path(tmp))))
+        names = [n.name for n in prepared.graph.node if n.op_type in INT8_OPS]
+        cost = {}
+        for name in names:
+            one = Path(tmp, "one.onnx")
+            onnx.save(int8_model(path, feeds["calibration"], only=[name]), str(one))
+            cost[name] = depth_difference_mm(path, one, feeds["check"])[0]
+    return dict(sorted(cost.items(), key=lambda kv: -kv[1]))
 
 
 def depth_difference_mm(reference: Path, other: Path, feeds: list[dict]) -> tuple[float, float]:
@@ -114,18 +143,22 @@ def check_precisions(precisions) -> None:
 
 
 def export_precisions(
-    ckpt_path: str | Path, float32_path: Path, precisions, scenes: int = 16
+    ckpt_path: str | Path, float32_path: Path, precisions, scenes: int = 16, keep_float: int = 0
 ) -> dict[str, tuple[Path, float, float]]:
-    """Write ``model.int8.onnx`` beside the float32 graph where ``precisions`` name int8;
+    """Write ``model.int8.onnx`` beside the float32 graph where ``precisions`` name int8, its
+    ``keep_float`` convolutions that int8 costs most (:func:`conv_sensitivity`) left float32;
     returns {precision: (path, mean mm, max mm against float32)} of what it wrote."""
     import onnx
 
     check_precisions(precisions)
     if "int8" not in precisions:
         return {}
+    if keep_float < 0:
+        raise ValueError(f"int8_keep_float: {keep_float}: a count of convolutions, 0 or more")
     feeds = scene_feeds(ckpt_path, scenes)
-    model = int8_model(float32_path, feeds["calibration"])
-    model = _with_metadata(model, onnx.load(str(float32_path)), "int8")
+    kept = list(conv_sensitivity(float32_path, feeds))[:keep_float] if keep_float else []
+    model = int8_model(float32_path, feeds["calibration"], keep_float=kept)
+    model = _with_metadata(model, onnx.load(str(float32_path)), "int8", kept)
     path = float32_path.with_name("model.int8.onnx")
     write_atomic(path, lambda tmp: onnx.save(model, str(tmp)))
     return {"int8": (path, *depth_difference_mm(float32_path, path, feeds["check"]))}

@@ -3,6 +3,7 @@
 checkpoint's test split, beside the checkpoint itself in PyTorch.
 
     python -m odmv.study graphs CKPT [CKPT ...] [--out DIR] [--calibration-scenes 16]
+        [--int8-keep-float K]
 
 Prints, per checkpoint: the MAE (mm) of PyTorch, of the float32 graph and of the int8 graph on
 every valid test pixel, and the int8 graph's change against the float32 one (%). The graphs are
@@ -54,6 +55,9 @@ def main(argv: list[str]) -> int:
     parser.add_argument("checkpoints", nargs="+", metavar="CKPT")
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--calibration-scenes", type=int, default=16)
+    parser.add_argument(
+        "--int8-keep-float", type=int, default=0, help="convolutions int8 leaves float32 (export)"
+    )
     args = parser.parse_args(argv)
     out = args.out or Path(tempfile.mkdtemp(prefix="odmv-graphs-"))
     print("| checkpoint | PyTorch MAE mm | float32 graph | int8 graph | int8 against float32 |")
@@ -65,7 +69,8 @@ def main(argv: list[str]) -> int:
             raise SystemExit(f"error: {e}") from None
         folder = out / Path(path).resolve().parent.parent.name
         graph, _ = export_onnx(path, folder)
-        int8 = export_precisions(path, graph, ["int8"], args.calibration_scenes)["int8"][0]
+        scenes, keep = args.calibration_scenes, args.int8_keep_float
+        int8 = export_precisions(path, graph, ["int8"], scenes, keep)["int8"][0]
         mae = graph_maes(module, dm.test_dataloader(), {"float32": graph, "int8": int8})
         change = 100 * (mae["int8"] / mae["float32"] - 1)
         print(

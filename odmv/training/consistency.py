@@ -184,13 +184,36 @@ def chosen_fit(settings: ConsistencySettings, share: float) -> ConsistencySettin
     return replace(settings, harmonics=2, window_px=2 * settings.window_px - 1)
 
 
-def chosen_target(settings: ConsistencySettings, images: str) -> ConsistencySettings:
+#: what each ``auto`` of ``adaptation``'s lr, anchor and replay stands for, by target: the
+#: fringe fit is a weak, noisy label that needs the trust region and the twin's replay to stay
+#: where it was; the classical depth is a direct label that may move the net further (seed 1
+#: under defocus 1.5: 81 % of the gap closed against 54 % with the fringe fit's settings, the
+#: nominal twin +0.7 %; experiments/results/adapt/notebook.md, round 13). The supervised
+#: fine-tune (the ceiling) reads the lr alone: the classical target's, so that label-free and
+#: supervised are compared at one rate (at 1e-4 the ceiling fell behind the classical target).
+TARGET_DEFAULTS = {
+    "fringes": {"lr": 1.0e-4, "anchor": 0.02, "replay": 1.0},
+    "classical": {"lr": 3.0e-4, "anchor": 0.0, "replay": 0.3},
+    "supervised": {"lr": 3.0e-4, "anchor": 0.0, "replay": 0.0},
+}
+
+
+def target_for(target: str, images: str) -> str:
     """``target=auto`` resolved by the user's dataset's ``images``: the classical
     reconstruction where it holds the full sequences (closer to the truth than the fringe
     fit on every shift measured: adapt notebook round 10), else the fringe fit."""
-    if settings.target != "auto":
-        return settings
-    return replace(settings, target="classical" if images == "full" else "fringes")
+    if target != "auto":
+        return target
+    return "classical" if images == "full" else "fringes"
+
+
+def resolved_adaptation(adaptation: dict, images: str) -> dict:
+    """An ``adaptation`` config with its target resolved (:func:`target_for`) and each
+    ``auto`` among lr, anchor and replay set to that target's :data:`TARGET_DEFAULTS`."""
+    target = target_for(adaptation["target"], images)
+    defaults = TARGET_DEFAULTS["supervised" if adaptation.get("supervised") else target]
+    chosen = {k: v for k, v in defaults.items() if adaptation.get(k, "auto") == "auto"}
+    return adaptation | {"target": target} | chosen
 
 
 def _weights(amplitude, r2, settings: ConsistencySettings, available=None) -> torch.Tensor:
