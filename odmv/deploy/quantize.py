@@ -64,9 +64,26 @@ def _with_metadata(model, source, precision: str, kept: list[str]):
     return model
 
 
-def int8_model(path: Path, feeds: list[dict], keep_float=(), only=None):
+def int8_model(path: Path, feeds: list[dict], keep_float=()):
     """``path`` (a float32 graph) statically quantized to int8, calibrated on ``feeds``; the
-    convolutions named in ``keep_float`` stay float32; ``only``: quantize those alone."""
+    convolutions named in ``keep_float`` stay float32."""
+    with tempfile.TemporaryDirectory(prefix="odmv-int8-") as tmp:
+        return _quantized(_prepared(path, Path(tmp)), feeds, keep_float)
+
+
+def _prepared(path: Path, tmp: Path) -> Path:
+    """``path`` through the quantizer's shape inference and graph clean-up."""
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    prepared = tmp / "prepared.onnx"
+    # the exporter's dynamic batch leaves symbolic shapes the symbolic pass cannot finish
+    quant_pre_process(str(path), str(prepared), skip_symbolic_shape=True)
+    return prepared
+
+
+def _quantized(prepared: Path, feeds: list[dict], keep_float=(), only=None):
+    """A prepared graph (:func:`_prepared`) quantized as :func:`int8_model` says; ``only``:
+    quantize those convolutions alone."""
     import onnx
     from onnxruntime.quantization import (
         CalibrationDataReader,
@@ -85,7 +102,7 @@ def int8_model(path: Path, feeds: list[dict], keep_float=(), only=None):
     with tempfile.TemporaryDirectory(prefix="odmv-int8-") as tmp:
         quantized = Path(tmp, "int8.onnx")
         quantize_static(
-            str(_prepared(path, Path(tmp))),
+            str(prepared),
             str(quantized),
             Reader(),
             quant_format=QuantFormat.QDQ,
@@ -99,16 +116,6 @@ def int8_model(path: Path, feeds: list[dict], keep_float=(), only=None):
         return onnx.load(str(quantized))
 
 
-def _prepared(path: Path, tmp: Path) -> Path:
-    """``path`` through the quantizer's shape inference and graph clean-up."""
-    from onnxruntime.quantization.shape_inference import quant_pre_process
-
-    prepared = tmp / "prepared.onnx"
-    # the exporter's dynamic batch leaves symbolic shapes the symbolic pass cannot finish
-    quant_pre_process(str(path), str(prepared), skip_symbolic_shape=True)
-    return prepared
-
-
 def conv_sensitivity(path: Path, feeds: dict[str, list[dict]]) -> dict[str, float]:
     """Each convolution's cost of int8 alone: the mean |depth difference| (mm) from the
     float32 graph ``path`` on ``feeds["check"]`` with that convolution quantized and nothing
@@ -116,12 +123,13 @@ def conv_sensitivity(path: Path, feeds: dict[str, list[dict]]) -> dict[str, floa
     import onnx
 
     with tempfile.TemporaryDirectory(prefix="odmv-int8-") as tmp:
-        prepared = onnx.load(str(_prepared(path, Path(tmp))))
-        names = [n.name for n in prepared.graph.node if n.op_type in INT8_OPS]
+        prepared = _prepared(path, Path(tmp))  # once: every quantization starts from it
+        graph = onnx.load(str(prepared)).graph
+        names = [n.name for n in graph.node if n.op_type in INT8_OPS]
         cost = {}
         for name in names:
             one = Path(tmp, "one.onnx")
-            onnx.save(int8_model(path, feeds["calibration"], only=[name]), str(one))
+            onnx.save(_quantized(prepared, feeds["calibration"], only=[name]), str(one))
             cost[name] = depth_difference_mm(path, one, feeds["check"])[0]
     return dict(sorted(cost.items(), key=lambda kv: -kv[1]))
 
