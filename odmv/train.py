@@ -38,7 +38,12 @@ from odmv.cli import (
 from odmv.io.atomic import write_json, write_text
 from odmv.io.manifest import MANIFEST, load_manifest
 from odmv.io.runfolder import CONFIG, METRICS, portable, portable_record
-from odmv.training.adaptation import check_calibration, second_harmonic_share, view_offsets
+from odmv.training.adaptation import (
+    CHECK_SOURCES,
+    check_calibration,
+    second_harmonic_share,
+    view_offsets,
+)
 from odmv.training.checkpoint import (
     AtomicCheckpointIO,
     check_fits,
@@ -294,7 +299,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
 
 
 def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str, float]:
-    if not (out_dir / CONFIG).is_file():  # called without Hydra's app (the demo, scripts)
+    fine_tune = cfg.get("adapt") or (cfg.get("adaptation") or {}).get("supervised")
+    # without Hydra's app (the demo, scripts) none is there; a fine-tune's is the command
+    # line's, while resume=RUN needs the one it ran (the user's data, the autos resolved)
+    if not (out_dir / CONFIG).is_file() or (fine_tune and ckpt is None):
         write_text(out_dir / CONFIG, OmegaConf.to_yaml(cfg))
     dm, module, trainer = build(cfg)
     if ckpt is not None:
@@ -313,10 +321,12 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
         if module.adapt.target == "fringes" and module.adapt.harmonics == "auto":
             # resumed runs choose again
             calibration |= _chosen_fit(cfg, dm, module)
+        classical_offsets = None
         if module.adapt.target == "classical":  # resumed runs decode again
-            calibration |= _classical_targets(dm, module)
+            covered, classical_offsets = _classical_targets(dm, module)
+            calibration |= covered
         if ckpt is None:
-            calibration |= _checked_calibration(cfg, dm, module)
+            calibration |= _checked_calibration(cfg, dm, module, classical_offsets)
     try:
         trainer.fit(module, datamodule=dm, ckpt_path=cfg.ckpt_path, weights_only=True)
     except SIGTERMException:  # Lightning's is a SystemExit without a status: exit 0
@@ -335,7 +345,6 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
     if cfg.test:
         best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
         module.test_dir = out_dir
-        fine_tune = cfg.get("adapt") or (cfg.get("adaptation") or {}).get("supervised")
         if dm.splits.get("test") or not fine_tune:  # a user's scenes may all adapt
             results = trainer.test(
                 module,
@@ -394,37 +403,58 @@ def _chosen_fit(cfg: DictConfig, dm, module: FPPModule) -> dict:
     return {"second_harmonic_share": round(share, 4), "fit": f"{a.window_px}:{a.harmonics}"}
 
 
-def _classical_targets(dm, module: FPPModule) -> dict:
+def _classical_targets(dm, module: FPPModule) -> tuple[dict, dict[str, float]]:
     """``adaptation.target=classical``: every scene of the user's dataset reconstructed by
     phase shifting from its full sequences, at the net's size, set on ``module`` as its
-    targets; returns the share of pixels reconstructed for the run's record."""
+    targets; returns the share of pixels reconstructed for the run's record and each of the
+    dataset's projectors' mean deviation from the others (mm; the calibration check's)."""
     t0 = time.perf_counter()
     ids = [sid for split in dm.splits.values() for sid in split]
-    depths = classical_depths(dm.manifest, ids, (dm.spec.height_px, dm.spec.width_px))
+    size = (dm.spec.height_px, dm.spec.width_px)
+    depths, offsets = classical_depths(dm.manifest, ids, size)
     module.classical_mm = {sid: torch.from_numpy(d.astype(np.float32)) for sid, d in depths.items()}
     covered = float(np.mean([np.isfinite(d).mean() for d in depths.values()]))
     rank_zero_print(
         f"classical target: {len(ids)} scenes reconstructed by phase shifting in "
         f"{time.perf_counter() - t0:.0f} s, {100 * covered:.0f} % of their pixels"
     )
-    return {"classical_covered": round(covered, 4)}
+    return {"classical_covered": round(covered, 4)}, offsets
 
 
-def _checked_calibration(cfg: DictConfig, dm, module: FPPModule) -> dict:
-    """Before adapting: each view's mean asked-for depth change of the starting net on the
-    held-out scenes, refused (StaleCalibrationError) where the views disagree by more than
-    ``adaptation.stale_mm``; returns them for the run's record."""
-    views = list(dm.spec.views)
-    offsets = view_offsets(module, dm.val_dataloader(), views, cfg.adaptation.window_px)
+def _checked_calibration(
+    cfg: DictConfig, dm, module: FPPModule, classical_offsets: dict[str, float] | None
+) -> dict:
+    """Before adapting: where the target is classical, each of the dataset's projectors' own
+    depth against the others' (``classical_offsets``: every projector the user captured,
+    whatever views the net reads); else each view's mean asked-for depth change of the
+    starting net on the held-out scenes. Refused (StaleCalibrationError) where the views
+    disagree by more than ``adaptation.stale_mm``; returns them for the run's record."""
+    if classical_offsets is not None:
+        source, offsets = "classical", classical_offsets
+    else:
+        source = "net"
+        views = list(dm.spec.views)
+        offsets = view_offsets(module, dm.val_dataloader(), views, cfg.adaptation.window_px)
     spread = None
     if cfg.adaptation.check_calibration:
-        spread = check_calibration(offsets, cfg.adaptation.stale_mm, dm.root)
+        spread = check_calibration(offsets, cfg.adaptation.stale_mm, dm.root, source)
     shown = ", ".join(f"{v} {x:+.3f}" for v, x in offsets.items())
-    rank_zero_print(
-        f"calibration check: the views ask for {shown} mm"
-        + ("" if spread is None else f" (spread {spread:.3f} mm <= {cfg.adaptation.stale_mm})")
-    )
-    return {"view_offsets_mm": offsets, "view_spread_mm": spread}
+    if len(offsets) < 2:
+        rank_zero_print(
+            f"calibration check: not possible with one view ({shown} mm): a projector "
+            "moved since calibrating would go unseen"
+            + (
+                ""
+                if source == "classical"
+                else "; a dataset with the full sequences checks every projector"
+            )
+        )
+    else:
+        rank_zero_print(
+            f"calibration check ({CHECK_SOURCES[source]}): {shown} mm"
+            + ("" if spread is None else f" (spread {spread:.3f} mm <= {cfg.adaptation.stale_mm})")
+        )
+    return {"calibration_check": source, "view_offsets_mm": offsets, "view_spread_mm": spread}
 
 
 def _interrupted(out_dir: Path, trainer: L.Trainer, sig: signal.Signals) -> Interrupted:

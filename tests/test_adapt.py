@@ -6,11 +6,14 @@ its gradient pointing back), the calibration check against a turned projector, a
 import csv
 import json
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 import torch
 from helpers import CLEAN, RIG, compose_config, tiny_overrides
+from omegaconf import OmegaConf
 
 from odmv.classical.geometry import coord_from_depth, phase_from_depth, triangulation_maps
 from odmv.classical.row import classical_depths
@@ -323,6 +326,31 @@ def test_the_calibration_check_measures_with_the_sinusoid_fit(base_run, unlabell
     assert offsets(2, 9, 5) == sinusoid and offsets(1, 9, 9) != sinusoid
 
 
+def test_an_adapted_run_resumes_on_the_users_data(base_run, sequences, tmp_path):
+    """The app, as a user types it: the adapted run's folder keeps the config it ran (the
+    user's dataset, the target's settings resolved), so resume=RUN continues that
+    fine-tune rather than training on the twin of the command line's defaults."""
+    run = tmp_path / "adapted"
+    app = [sys.executable, "-m", "odmv.train"]
+    first = subprocess.run(
+        [*app, "adapt=true", f"init_from={base_run}", f"root={sequences[1]}",
+         f"paths.output_dir={run}", "adaptation.epochs=1", "adaptation.replay=0",
+         "trainer.enable_progress_bar=false"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert first.returncode == 0, first.stderr[-2000:]
+    saved = OmegaConf.load(run / ".hydra" / "config.yaml")
+    assert saved.data.root == str(sequences[1].resolve()) and saved.adaptation.lr == 3e-4
+    again = subprocess.run([*app, f"resume={run}", "trainer.max_epochs=2"], cwd=tmp_path,
+                           capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert f"continuing {run}" in again.stdout
+    record = json.loads((run / "metrics.json").read_text())
+    assert record["dataset"] == str(sequences[1].resolve()) and record["target"] == "classical"
+    rows = list(csv.DictReader((run / "csv" / "metrics.csv").open()))
+    assert {r["epoch"] for r in rows if r.get("val/loss")} == {"0", "1"}
+
+
 def test_adapt_names_what_it_lacks(base_run, unlabelled):
     for overrides, message in (
         (["adapt=true", f"root={unlabelled}"], "init_from=RUN"),
@@ -353,7 +381,7 @@ def test_the_classical_target_is_reconstructed_from_the_sequences_alone(sequence
     labelled, bare = sequences
     m = load_manifest(labelled)
     ids = [s["id"] for s in m.scenes]
-    depths = classical_depths(load_manifest(bare), ids, (64, 64))
+    depths, _ = classical_depths(load_manifest(bare), ids, (64, 64))
     spec = check_spec(m, VIEW_NAMES, 64, None, None)
     errors, covered = [], []
     for sid in ids:
@@ -401,6 +429,56 @@ def test_auto_settings_follow_the_target(base_run, unlabelled, sequences, tmp_pa
         assert {k: cfg.adaptation[k] for k in want} == want and cfg.optimizer.lr == want["lr"]
         assert cfg.adaptation.target == ("fringes" if root == unlabelled else "classical")
         assert bool(cfg.data.get("replay")) == (want["replay"] > 0 and defaults != "supervised")
+
+
+@pytest.fixture(scope="module")
+def turned_sequences(tmp_path_factory):
+    """Four scenes' full sequences, without ground truth, from the twin with its projectors
+    turned by 0.1 degree after it was calibrated (its manifest keeps the stale calibration)."""
+    out = tmp_path_factory.mktemp("turned") / "data"
+    settings = SimSettings(
+        out=out, scenes=4, height_px=64, width_px=64, seed=2, images="full",
+        fringe=FringeSpec(train_frequency=1), shift=Shift("projector_rotation", 0.1, 0),
+    )  # fmt: skip
+    simulate(settings, workers=1, progress=False)
+    for scene in (out / "scenes").iterdir():
+        for name in (DEPTH_FILE, LIT_FILE, PROJ_COORD_FILE, FOOTPRINT_FILE):
+            (scene / name).unlink(missing_ok=True)
+    return out
+
+
+def test_the_projectors_own_depths_show_a_stale_calibration(sequences, turned_sequences):
+    """Each projector's phase-shifting depth against the others': they agree through a
+    calibration that describes the rig, and part where the projectors turned since."""
+    spreads = {}
+    for name, root in (("nominal", sequences[1]), ("turned", turned_sequences)):
+        m = load_manifest(root)
+        _, offsets = classical_depths(m, [s["id"] for s in m.scenes], (64, 64))
+        assert list(offsets) == list(m.views)
+        spreads[name] = np.std(list(offsets.values()))
+    assert spreads["nominal"] < 0.01 and spreads["turned"] > 0.05
+
+
+def test_a_one_view_net_is_not_fitted_through_a_stale_calibration(
+    twin240, sequences, turned_sequences, tmp_path
+):
+    """A net that reads one view adapts to the classical depth of sequences from the rig as
+    calibrated, checked on all four projectors the user captured; from the turned rig it is
+    refused before training (a one-view net's own depth has nothing to compare)."""
+    base = tmp_path / "unet"
+    overrides = tiny_overrides(twin240, base, "model=unet", "head=phase", "reference=true")
+    train(compose_config("train", [o for o in overrides if o != "model.net.blocks=1"]))
+    start = ["adapt=true", f"init_from={base}", "adaptation.epochs=1", "adaptation.replay=0",
+             "trainer.enable_progress_bar=false"]  # fmt: skip
+    adapted = [*start, f"root={sequences[1]}", f"paths.output_dir={tmp_path / 'adapted'}"]
+    train(adapted_config(compose_config("train", adapted), adapted))
+    record = json.loads((tmp_path / "adapted" / "metrics.json").read_text())
+    assert len(record["views"]) == 1 and record["calibration_check"] == "classical"
+    assert len(record["view_offsets_mm"]) == 4 and record["view_spread_mm"] < 0.02
+    refused = [*start, f"root={turned_sequences}", f"paths.output_dir={tmp_path / 'refused'}"]
+    with pytest.raises(StaleCalibrationError, match=f"{turned_sequences}: the views disagree"):
+        train(adapted_config(compose_config("train", refused), refused))
+    assert not (tmp_path / "refused" / "metrics.json").exists()
 
 
 def test_the_classical_target_needs_the_sequences(base_run, unlabelled, tmp_path):

@@ -211,6 +211,17 @@ def _nanmedian(a: np.ndarray) -> np.ndarray:
         return np.nanmedian(a, 0)
 
 
+def view_deviations_mm(depths: np.ndarray, clip_mm: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Per-projector depths (V, H, W; NaN = none) -> each view's summed deviation (mm) from
+    the per-pixel median of the views, over the pixels it shares with at least one other
+    view, each deviation clipped to +-``clip_mm`` (a wrong fringe order is millimetres off: a
+    few must not outweigh the rest); and those pixels' counts (V each)."""
+    seen = np.isfinite(depths)
+    shared = seen & (seen.sum(0) >= 2)
+    deviation = np.clip(np.nan_to_num(depths - _nanmedian(depths)), -clip_mm, clip_mm)
+    return np.where(shared, deviation, 0.0).sum((1, 2)), shared.sum((1, 2)).astype(np.float64)
+
+
 def fuse_views(
     depths: np.ndarray, modulations: np.ndarray, tolerance_mm: float, edge_mm: float
 ) -> np.ndarray:

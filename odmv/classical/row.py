@@ -29,6 +29,7 @@ from odmv.classical.fringe import (
     period_in_camera_px,
     triangulate_depth,
     unwrap_spatial,
+    view_deviations_mm,
     wrapped_phase,
 )
 from odmv.classical.geometry import triangulation_maps
@@ -112,15 +113,21 @@ def _resolved(camera, proj, options: PspOptions) -> tuple[list[float], list[int]
     return periods_px, used
 
 
-def fused_depth(decoded: list[DecodedView], camera, projectors) -> np.ndarray:
-    """Views decoded with the rig (:func:`decode_views`) -> depth (mm, NaN where rejected):
-    each view triangulated, then fused over the views that agree."""
+def view_depths(decoded: list[DecodedView], camera, projectors) -> np.ndarray:
+    """Views decoded with the rig (:func:`decode_views`) -> each one's triangulated depth
+    (V, H, W; mm, NaN where rejected)."""
     depths = []
     for view, proj in zip(decoded, projectors, strict=True):
         depth = triangulate_depth(view.u, camera, proj)
         depths.append(np.where(view.ok & np.isfinite(depth), depth, np.nan))
+    return np.stack(depths)
+
+
+def fused_depth(decoded: list[DecodedView], camera, projectors) -> np.ndarray:
+    """Views decoded with the rig (:func:`decode_views`) -> depth (mm, NaN where rejected):
+    each view triangulated, then fused over the views that agree."""
     modulations = np.stack([view.modulation for view in decoded])
-    return fuse_views(np.stack(depths), modulations, TOLERANCE_MM, EDGE_MM)
+    return fuse_views(view_depths(decoded, camera, projectors), modulations, TOLERANCE_MM, EDGE_MM)
 
 
 def reconstruct_scene(stack: np.ndarray, camera, projectors, options: PspOptions) -> np.ndarray:
@@ -130,11 +137,16 @@ def reconstruct_scene(stack: np.ndarray, camera, projectors, options: PspOptions
     return fused_depth(decode_views(stack, options, camera, projectors), camera, projectors)
 
 
-def classical_depths(m: Manifest, ids: list[str], size: tuple[int, int]) -> dict:
+def classical_depths(
+    m: Manifest, ids: list[str], size: tuple[int, int]
+) -> tuple[dict, dict[str, float]]:
     """Each scene of ``ids`` of the dataset of manifest ``m`` (with its full sequences)
     reconstructed classically from its images resized to ``size`` (H, W) -> {scene id: depth
-    (mm, H x W, NaN where nothing is reconstructed)}. Reads no labels: a user's captures will
-    do."""
+    (mm, H x W, NaN where nothing is reconstructed)}, and each projector's mean deviation (mm)
+    from the views' per-pixel median over those scenes (:func:`view_deviations_mm`; by view,
+    those that share pixels with another): a calibration that describes the rig leaves them
+    near zero whatever the optics, a projector moved since calibrating shifts its own. Reads
+    no labels: a user's captures will do."""
     if m.images != "full":
         raise DataError(
             f"{m.root}: the classical reconstruction needs the full phase-shifting sequences "
@@ -146,11 +158,17 @@ def classical_depths(m: Manifest, ids: list[str], size: tuple[int, int]) -> dict
     n_f, n_s = len(m.fringe.periods_px), m.fringe.steps
     coarse_first = np.argsort(m.fringe.periods_px)[::-1]
     options = twin_options(m)
-    depths = {}
+    depths, sums, counts = {}, np.zeros(len(m.views)), np.zeros(len(m.views))
     for sid in ids:
         stack = load_stack(m, sid, m.views, h, w).reshape(len(m.views), n_f, n_s, h, w)
-        depths[sid] = reconstruct_scene(stack[:, coarse_first], cam, projectors, options)
-    return depths
+        decoded = decode_views(stack[:, coarse_first], options, cam, projectors)
+        per_view = view_depths(decoded, cam, projectors)
+        modulations = np.stack([view.modulation for view in decoded])
+        depths[sid] = fuse_views(per_view, modulations, TOLERANCE_MM, EDGE_MM)
+        s, c = view_deviations_mm(per_view)
+        sums, counts = sums + s, counts + c
+    offsets = {v: float(s / c) for v, s, c in zip(m.views, sums, counts, strict=True) if c}
+    return depths, offsets
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,11 @@ calibration. If the rig moved after it was calibrated, no depth explains every v
 fitting one would teach the net the wrong geometry. So before adapting, the net it starts from
 is run on the user's scenes and each view's mean asked-for depth change is measured: a net's
 own error moves every view alike, a stale calibration moves each view its own way. Where the
-views' spread exceeds ``stale_mm`` the run stops and says so.
+target is the classical reconstruction of the user's sequences, each projector's own
+phase-shifting depth is compared with the others' instead: no net's error enters, and every
+projector the user captured counts, so a net that reads one view is checked too. Where the
+views' spread exceeds ``stale_mm`` the run stops and says so; with one projector there is
+nothing to compare, and the run says that.
 
 A fringe that is not a sinusoid (projector gamma) pulls the default sinusoid fit off the true
 depth; the starting net's depth shows how much second harmonic the user's fringes carry, and
@@ -75,19 +79,30 @@ def second_harmonic_share(module, loader, settings, max_batches: int = 8) -> flo
     return float(second / first) if float(first) > 0 else 0.0
 
 
-def check_calibration(offsets: dict[str, float], stale_mm: float, where) -> float | None:
-    """The spread (population std, mm) of the views' ``offsets``; raises
-    StaleCalibrationError naming ``where`` if it exceeds ``stale_mm``. None with fewer than
-    two views (one view cannot disagree with itself)."""
+#: What the calibration check compares, by source: the starting net's depth through each
+#: view's fringe, or each projector's classical depth (target=classical) against the others'.
+CHECK_SOURCES = {
+    "net": "the views ask for",
+    "classical": "each projector's phase-shifting depth off the others'",
+}
+
+
+def check_calibration(
+    offsets: dict[str, float], stale_mm: float, where, source: str = "net"
+) -> float | None:
+    """The spread (population std, mm) of the views' ``offsets`` (measured as
+    :data:`CHECK_SOURCES` ``[source]`` says); raises StaleCalibrationError naming ``where`` if it
+    exceeds ``stale_mm``. None with fewer than two views (one view cannot disagree with
+    itself)."""
     if len(offsets) < 2:
         return None
     spread = float(torch.tensor(list(offsets.values()), dtype=torch.float64).std(unbiased=False))
     if spread > stale_mm:
         per_view = ", ".join(f"{v} {x:+.3f}" for v, x in offsets.items())
         raise StaleCalibrationError(
-            f"{where}: the views disagree on the depth (they ask for {per_view} mm; spread "
-            f"{spread:.3f} mm > adaptation.stale_mm={stale_mm}): the calibration no longer "
-            "describes the rig (a projector moved?); recalibrate and convert the captures "
+            f"{where}: the views disagree on the depth ({CHECK_SOURCES[source]}: {per_view} "
+            f"mm; spread {spread:.3f} mm > adaptation.stale_mm={stale_mm}): the calibration no "
+            "longer describes the rig (a projector moved?); recalibrate and convert the captures "
             "again, or adaptation.check_calibration=false to adapt anyway"
         )
     return spread
