@@ -18,6 +18,7 @@ import numpy as np
 
 from odmv.classical.row import classical_depths
 from odmv.io.manifest import load_manifest
+from odmv.training.adaptation import view_spread_mm
 
 
 def main() -> None:
@@ -31,7 +32,7 @@ def main() -> None:
         t0 = time.perf_counter()
         m = load_manifest(root)
         depths, offsets = classical_depths(m, [s["id"] for s in m.scenes], (args.size,) * 2)
-        spread = float(np.std(list(offsets.values())))
+        spread = view_spread_mm(offsets)
         covered = float(np.mean([np.isfinite(d).mean() for d in depths.values()]))
         shown = ", ".join(f"{v} {x:+.4f}" for v, x in offsets.items())
         seconds = time.perf_counter() - t0

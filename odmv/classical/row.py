@@ -126,8 +126,13 @@ def view_depths(decoded: list[DecodedView], camera, projectors) -> np.ndarray:
 def fused_depth(decoded: list[DecodedView], camera, projectors) -> np.ndarray:
     """Views decoded with the rig (:func:`decode_views`) -> depth (mm, NaN where rejected):
     each view triangulated, then fused over the views that agree."""
+    return _fused(decoded, view_depths(decoded, camera, projectors))
+
+
+def _fused(decoded: list[DecodedView], depths: np.ndarray) -> np.ndarray:
+    """The views' triangulated ``depths`` (:func:`view_depths`) fused over those that agree."""
     modulations = np.stack([view.modulation for view in decoded])
-    return fuse_views(view_depths(decoded, camera, projectors), modulations, TOLERANCE_MM, EDGE_MM)
+    return fuse_views(depths, modulations, TOLERANCE_MM, EDGE_MM)
 
 
 def reconstruct_scene(stack: np.ndarray, camera, projectors, options: PspOptions) -> np.ndarray:
@@ -163,8 +168,7 @@ def classical_depths(
         stack = load_stack(m, sid, m.views, h, w).reshape(len(m.views), n_f, n_s, h, w)
         decoded = decode_views(stack[:, coarse_first], options, cam, projectors)
         per_view = view_depths(decoded, cam, projectors)
-        modulations = np.stack([view.modulation for view in decoded])
-        depths[sid] = fuse_views(per_view, modulations, TOLERANCE_MM, EDGE_MM)
+        depths[sid] = _fused(decoded, per_view)
         s, c = view_deviations_mm(per_view)
         sums, counts = sums + s, counts + c
     offsets = {v: float(s / c) for v, s, c in zip(m.views, sums, counts, strict=True) if c}

@@ -87,17 +87,22 @@ CHECK_SOURCES = {
 }
 
 
+def view_spread_mm(offsets: dict[str, float]) -> float | None:
+    """The spread (population std, mm) of the views' ``offsets``; None with fewer than two
+    views (one view cannot disagree with itself)."""
+    if len(offsets) < 2:
+        return None
+    return float(torch.tensor(list(offsets.values()), dtype=torch.float64).std(unbiased=False))
+
+
 def check_calibration(
     offsets: dict[str, float], stale_mm: float, where, source: str = "net"
 ) -> float | None:
-    """The spread (population std, mm) of the views' ``offsets`` (measured as
-    :data:`CHECK_SOURCES` ``[source]`` says); raises StaleCalibrationError naming ``where`` if it
-    exceeds ``stale_mm``. None with fewer than two views (one view cannot disagree with
-    itself)."""
-    if len(offsets) < 2:
-        return None
-    spread = float(torch.tensor(list(offsets.values()), dtype=torch.float64).std(unbiased=False))
-    if spread > stale_mm:
+    """The views' :func:`view_spread_mm` of ``offsets`` (measured as :data:`CHECK_SOURCES`
+    ``[source]`` says); raises StaleCalibrationError naming ``where`` if it exceeds
+    ``stale_mm``."""
+    spread = view_spread_mm(offsets)
+    if spread is not None and spread > stale_mm:
         per_view = ", ".join(f"{v} {x:+.3f}" for v, x in offsets.items())
         raise StaleCalibrationError(
             f"{where}: the views disagree on the depth ({CHECK_SOURCES[source]}: {per_view} "
