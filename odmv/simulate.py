@@ -1,4 +1,5 @@
-"""Render a multi-view FPP dataset: ``python -m odmv.simulate out=PATH scenes=N ...``;
+"""Render a multi-view FPP dataset: ``python -m odmv.simulate out=PATH scenes=N ...``
+(``pose=random``: scenes that move, odmv.sim.pose);
 ``shard=I/N`` renders one shard of it, ``merge=[DIR,...] out=PATH`` joins shards
 (odmv.sim.shards).
 
@@ -12,6 +13,7 @@ import sys
 from omegaconf import DictConfig, OmegaConf
 
 from odmv.cli import app, run_app
+from odmv.data.prior import prior_summary, summary_lines
 from odmv.io.manifest import load_manifest
 from odmv.io.validation import validate
 from odmv.sim.shards import merge, parse_shard, shard_ids
@@ -39,7 +41,10 @@ def run(cfg: DictConfig) -> int:
         f"{rep.seconds:.1f} s ({rate:.2f} scenes/s), {rep.skipped} already complete"
     )
     ids = None if shard is None else shard_ids(load_manifest(s.out), shard)
-    return check(s.out, cfg.validate, ids)
+    code = check(s.out, cfg.validate, ids)
+    if not code and shard is None:  # what a net could recall instead of measure
+        print("\n".join(summary_lines(prior_summary(load_manifest(s.out)))))
+    return code
 
 
 def check(root, how: str, ids: list[str] | None = None) -> int:

@@ -16,8 +16,10 @@ def test_summarize_scores_a_run_and_a_record_that_kept_only_its_metrics(trained,
     mae = f"{metrics['test/mae_mm']:.3f}"
     assert [c.strip() for c in rows["run"][:2]] == ["1", mae]
     assert [c.strip() for c in rows["record"][:2]] == ["1", mae]
-    assert rows["record"][4].strip() == "0.123" and rows["run"][4].strip() == "–"
+    interior = f"{metrics['test/mae_mm_interior']:.3f}"
+    assert [c.strip() for c in rows["run"][4:6]] == [interior, f"{metrics['test/mae_mm_edge']:.3f}"]
+    assert rows["record"][6].strip() == "0.123" and rows["run"][6].strip() == "–"
     # the record has no per-scene file: no family figures and no worst scene
-    assert [c.strip() for c in rows["record"][5:]] == ["–"] * 4
+    assert [c.strip() for c in rows["record"][8:]] == ["–"] * 4
     assert "–" not in rows["run"][-1]  # the run names its worst scene
-    assert [c.strip() for c in rows["none"]] == ["0"] + ["–"] * 8
+    assert [c.strip() for c in rows["none"]] == ["0"] + ["–"] * 11

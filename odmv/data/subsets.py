@@ -14,6 +14,10 @@ They never depend on which views a model sees, so every model is scored on the s
 - ``first_shadowed``: the part of ``first_unlit`` inside the first projector's footprint: what
   occlusion hides from the one view.
 
+The metrics' edge band (:func:`edge_band`) comes from the depth alone: the pixels within 1 px
+of a jump over 1 mm between neighbours, where a pixel mixes two surfaces and a net's error is
+mostly where it places the edge.
+
 ``shadowed`` and ``unlit`` may overlap (a pixel in one footprint, shadowed there, outside the
 others). The footprint comes from ``footprint.exr`` where the dataset has it; otherwise it is
 computed from the depth map and the manifest's rig (:func:`footprint_from_depth`), which is exact
@@ -23,8 +27,14 @@ when the rig is, and as good as the calibration for imported data.
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from odmv.rig import Rig
+
+#: a depth jump: neighbouring pixels whose ground-truth depths differ by more than this (mm)
+EDGE_JUMP_MM = 1.0
+#: pixels within this many px (in x and y) of a jump pixel are the metrics' edge band
+EDGE_RADIUS_PX = 1
 
 #: the masks :func:`subset_masks` returns, each (1, H, W) per scene
 MASKS = ("shadowed", "unlit", "first_unlit", "first_shadowed")
@@ -64,3 +74,18 @@ def first_view_subsets(lit, footprint) -> dict:
     (V, H, W) bool over all projectors, the first projector first (numpy or torch)."""
     hidden = ~lit[0] & lit[1:].any(0)
     return {"first_unlit": hidden[None], "first_shadowed": (hidden & footprint[0])[None]}
+
+
+def edge_band(depth_mm: torch.Tensor, radius_px: int = EDGE_RADIUS_PX) -> torch.Tensor:
+    """B x 1 x H x W bool: the pixels within ``radius_px`` (in x and y) of a depth jump, i.e. of a
+    pixel whose depth (mm; NaN: none, never a jump) differs from a 4-neighbour's by more than
+    :data:`EDGE_JUMP_MM` (both pixels of the pair are jump pixels)."""
+    jump = torch.zeros_like(depth_mm, dtype=torch.bool)
+    dx = (depth_mm[..., :, 1:] - depth_mm[..., :, :-1]).abs() > EDGE_JUMP_MM
+    dy = (depth_mm[..., 1:, :] - depth_mm[..., :-1, :]).abs() > EDGE_JUMP_MM
+    jump[..., :, 1:] |= dx
+    jump[..., :, :-1] |= dx
+    jump[..., 1:, :] |= dy
+    jump[..., :-1, :] |= dy
+    k = 2 * radius_px + 1
+    return torch.nn.functional.max_pool2d(jump.float(), k, 1, radius_px) > 0

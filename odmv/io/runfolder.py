@@ -14,6 +14,7 @@ SCENES_CSV = "test_scenes.csv"
 PREDICTIONS = "test_predictions.npz"
 CONFIG = ".hydra/config.yaml"
 ROBUSTNESS = "robustness.json"
+PRIOR = "prior.json"  # the prior probe (odmv.study.prior): MAE with the scene moved
 
 #: where a checkout keeps its datasets (conf/paths/default.yaml's data_dir)
 DATA_DIR = "data"

@@ -192,6 +192,7 @@ def _scene_section(scene: Scene, figs: _Figures) -> str:
 def _bands_table(scene: Scene) -> str:
     names = ["all", *(f"{lo:g}-{hi:g} mm" if np.isfinite(hi) else f"> {lo:g} mm"
                       for lo, hi in plots.HEIGHT_BANDS_MM.values())]  # fmt: skip
+    names += ["interior", "edge"]
     if scene.subsets is not None:
         names.append("shadowed")
     rows = "".join(
@@ -202,7 +203,8 @@ def _bands_table(scene: Scene) -> str:
     )
     head = "".join(f"<th>{n}</th>" for n in names)
     return (
-        "<table><tr><th>MAE (mm) in this scene, by height above the base plane</th>"
+        "<table><tr><th>MAE (mm) in this scene, by height above the base plane, away from "
+        "and at depth edges</th>"
         f"{head}</tr>{rows}</table>"
     )
 

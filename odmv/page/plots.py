@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 import plotly.graph_objects as go
+import torch
 from plotly.colors import qualitative
 from plotly.subplots import make_subplots
 
+from odmv.data.subsets import edge_band
 from odmv.page.sources import SHADOWED_BIT, Scene
 from odmv.study.results import Cell
 from odmv.study.robustness import ratio_curves, strength_unit
@@ -75,15 +77,19 @@ def error_axis(scene: Scene) -> dict:
 
 
 def band_errors(scene: Scene) -> list[tuple[str, list[float]]]:
-    """MAE (mm) per prediction: all pixels, each height band, shadowed pixels."""
+    """MAE (mm) per prediction: all pixels, each height band, interior and edge pixels
+    (odmv.data.subsets.edge_band), shadowed pixels."""
     _, height = heights_mm(scene.truth_mm)
     shadowed = (scene.subsets & SHADOWED_BIT) > 0 if scene.subsets is not None else None
+    truth = torch.from_numpy(np.ascontiguousarray(scene.truth_mm, np.float32))[None, None]
+    edge = edge_band(truth)[0, 0].numpy()
     out = []
     for label, pred in scene.predictions.items():
         err = np.abs(pred - scene.truth_mm)
         row = [float(np.nanmean(err))]
-        for lo, hi in HEIGHT_BANDS_MM.values():
-            band = (height >= lo) & (height < hi) & np.isfinite(err)
+        bands = [(height >= lo) & (height < hi) for lo, hi in HEIGHT_BANDS_MM.values()]
+        for band in (*bands, ~edge, edge):
+            band = band & np.isfinite(err)
             row.append(float(err[band].mean()) if band.any() else float("nan"))
         if shadowed is not None:
             sel = shadowed & np.isfinite(err)

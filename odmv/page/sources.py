@@ -15,6 +15,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from odmv.io.runfolder import METRICS, PREDICTIONS, SCENES_CSV, recorded_dataset
+from odmv.study.prior import prior_section
 from odmv.study.results import Cell, Run, build_tables, find_runs
 
 #: bits of a pixel's subset code: bit k lit by the dataset's view k (k < 5), then these
@@ -178,7 +179,15 @@ def _run(path: Path) -> Page:
     prov = _provenance([run])[:-1]
     if mae is not None:
         prov.insert(0, ("test MAE", f"{mae:.4f} mm over the test split"))
-    return Page(f"odmv run {path.name}: {label}", prov, scenes=scenes, notes=notes)
+    if "test/mae_mm_interior" in metrics:
+        prov.insert(1, ("interior / edge MAE", (
+            f"{metrics['test/mae_mm_interior']:.4f} mm on {metrics['test/share_interior']:.1%} of "
+            f"the pixels / {metrics['test/mae_mm_edge']:.4f} mm on the edge band"
+        )))  # fmt: skip
+    markdown = "\n".join(prior_section([path]))  # the prior probe, where it ran
+    return Page(
+        f"odmv run {path.name}: {label}", prov, markdown=markdown, scenes=scenes, notes=notes
+    )
 
 
 def _report(path: Path) -> Page:

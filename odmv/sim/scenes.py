@@ -5,8 +5,10 @@ and albedo); :func:`build_scene` turns a spec into one triangle soup. Specs are 
 seeded generator per scene, so the same (seed, index) always gives the same scene, and the spec
 stored beside the images re-renders it exactly.
 
-Lengths are mm in the rig's world frame: the base plane is z = 0, objects stand on it, the
-camera field is about 35.5 mm square around the origin.
+Lengths are mm in the rig's world frame: a spec is drawn on the base plane z = 0, objects
+stand on it, the camera field is about 35.5 mm square around the origin. A spec's ``pose``
+(odmv.sim.pose; absent: the fixed twin) then places the support and the ground in the working
+volume, and a ``move`` (the prior probe's) moves the whole scene after that.
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+
+from odmv.sim.pose import place, surface_height
 
 FAMILIES = ("primitives", "pcb", "freeform")
 MESH_SUFFIXES = (".stl", ".obj", ".ply")
@@ -139,10 +143,12 @@ def build_scene(spec: dict, mesh_cache: dict | None = None) -> Scene:
     mesh_cache = {} if mesh_cache is None else mesh_cache
     tris, alb = [], []
     g = spec.get("ground", {"albedo": 0.5})
-    h = GROUND_HALF_MM
-    ground = np.array([[[-h, -h, 0], [h, -h, 0], [h, h, 0]], [[-h, -h, 0], [h, h, 0], [-h, h, 0]]])
+    pose = spec.get("pose")
+    ground = _ground(pose)
+    if pose is not None:
+        ground = place(ground, pose["ground"]["offset_mm"], pose["ground"]["tilt_deg"])
     tris.append(ground)
-    alb.append(np.full(2, g["albedo"]))
+    alb.append(np.full(len(ground), g["albedo"]))
     for part in spec["parts"]:
         m = _shape_mesh(part, mesh_cache)
         v = np.asarray(m.vertices, float)
@@ -150,9 +156,35 @@ def build_scene(spec: dict, mesh_cache: dict | None = None) -> Scene:
             v = v - (v.min(0) + v.max(0)) / 2
         v = v * np.asarray(part.get("scale", 1.0), float)
         v = v @ _rotation(*part.get("rotation_deg", (0, 0, 0))).T + np.asarray(part["position"])
+        if pose is not None:
+            v = place(v, pose["offset_mm"], pose["tilt_deg"])
         tris.append(v[np.asarray(m.faces)])
         alb.append(np.full(len(m.faces), part["albedo"]))
-    return Scene(np.concatenate(tris).astype(np.float64), np.concatenate(alb).astype(np.float64))
+    triangles = np.concatenate(tris).astype(np.float64)
+    if move := spec.get("move"):
+        triangles = place(triangles, move["offset_mm"], move["tilt_deg"])
+    return Scene(triangles, np.concatenate(alb).astype(np.float64))
+
+
+#: the freeform support's grid step (mm): a third of a camera pixel at 480 px is 0.025 mm, but
+#: its waves are 20 mm long or more, so 0.5 mm facets deviate from them by under 2 um
+SURFACE_STEP_MM = 0.5
+
+
+def _ground(pose: dict | None) -> np.ndarray:
+    """The ground's triangles (F x 3 x 3, mm) before its pose: the plane z = 0, or the freeform
+    support's height field where the pose has one."""
+    h = GROUND_HALF_MM
+    if pose is None or "surface" not in pose:
+        return np.array(
+            [[[-h, -h, 0], [h, -h, 0], [h, h, 0]], [[-h, -h, 0], [h, h, 0], [-h, h, 0]]], float
+        )
+    n = int(round(2 * h / SURFACE_STEP_MM)) + 1
+    xs = np.linspace(-h, h, n)
+    x, y = np.meshgrid(xs, xs)
+    v = np.stack([x, y, surface_height(pose["surface"], x, y)], -1)
+    a, b, c, d = v[:-1, :-1], v[:-1, 1:], v[1:, 1:], v[1:, :-1]
+    return np.concatenate([np.stack([a, b, c], -2), np.stack([a, c, d], -2)]).reshape(-1, 3, 3)
 
 
 # ----------------------------------------------------------------------------- families
@@ -328,18 +360,19 @@ def _pcb_part(rng, top: float, taken: list) -> list[dict]:
     return [_box((length, width, height), (*spot, top + height / 2), float(rng.uniform(0.5, 0.9)))]
 
 
-def pcb_spec(rng, n_parts: tuple[int, int] = (6, 18)) -> dict:
+def pcb_spec(
+    rng,
+    n_parts: tuple[int, int] = (6, 18),
+    board_mm: float = BOARD_MM,
+    half_mm: float | None = None,
+) -> dict:
+    """A board ``board_mm`` thick, ``2 * half_mm`` square (None: past the field) with parts."""
     board_albedo = float(rng.uniform(0.2, 0.45))
-    parts = [
-        _box(
-            (2 * GROUND_HALF_MM * 0.9, 2 * GROUND_HALF_MM * 0.9, BOARD_MM),
-            (0, 0, BOARD_MM / 2),
-            board_albedo,
-        )
-    ]
+    side = 2 * GROUND_HALF_MM * 0.9 if half_mm is None else 2 * half_mm
+    parts = [_box((side, side, board_mm), (0, 0, board_mm / 2), board_albedo)]
     taken: list = []
     for _ in range(int(rng.integers(n_parts[0], n_parts[1] + 1))):
-        parts += _pcb_part(rng, BOARD_MM, taken)
+        parts += _pcb_part(rng, board_mm, taken)
     return {"family": "pcb", "ground": {"albedo": 0.5}, "parts": parts}
 
 
@@ -437,18 +470,42 @@ def fit_file_parts(spec: dict, cache: dict) -> dict:
 
 
 def draw_spec(
-    family: str, rng: np.random.Generator, mesh_files: list[Path] = (), cache: dict | None = None
+    family: str,
+    rng: np.random.Generator,
+    mesh_files: list[Path] = (),
+    cache: dict | None = None,
+    pose: dict | None = None,
 ) -> dict:
-    """Draw one scene spec of ``family`` (``primitives``, ``pcb`` or ``freeform``)."""
+    """Draw one scene spec of ``family`` (``primitives``, ``pcb`` or ``freeform``), placed by
+    ``pose`` (odmv.sim.pose; None: on the fixed twin's base plane)."""
+    pose = pose or {}
     if family == "primitives":
         spec = primitives_spec(rng)
     elif family == "pcb":
-        spec = pcb_spec(rng)
+        spec = pcb_spec(
+            rng, board_mm=pose.get("board_mm", BOARD_MM), half_mm=pose.get("board_half_mm")
+        )
     elif family == "freeform":
         spec = fit_file_parts(freeform_spec(rng, mesh_files), {} if cache is None else cache)
     else:
         raise SceneError(f"unknown scene family {family!r}; choose from {FAMILIES} or 'mix'")
+    if pose:
+        spec["pose"] = pose
+        if "surface" in pose:
+            _rest_on_surface(spec["parts"], pose["surface"])
     return spec
+
+
+def _rest_on_surface(parts: list[dict], waves) -> None:
+    """Lower or raise each part by the freeform support's lowest height under its footprint
+    (centre and four points at its reach), so that it stands on the surface, not above it."""
+    for part in parts:
+        x, y = part["position"][:2]
+        size = np.atleast_1d(np.asarray(part.get("size", [3.0]), float))
+        r = float(size[:2].max()) / 2 if part["shape"] == "box" else float(size[0])
+        xs = np.array([x, x + r, x - r, x, x])
+        ys = np.array([y, y, y, y + r, y - r])
+        part["position"][2] += float(np.min(surface_height(waves, xs, ys)))
 
 
 def choose_family(family: str, proportions: dict[str, float], rng) -> str:

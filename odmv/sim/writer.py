@@ -41,6 +41,7 @@ from odmv.io.manifest import (
     load_manifest,
 )
 from odmv.rig import Rig, check_views, size_hw
+from odmv.sim.pose import PoseSettings
 from odmv.sim.render import RenderConfig, Rendered, render_scene
 from odmv.sim.scenes import Scene, build_scene, choose_family, draw_spec, mesh_files_in
 from odmv.sim.shifts import NOMINAL, NOMINAL_SHIFT, Shift, apply
@@ -76,6 +77,10 @@ class SimSettings:
     randomize: dict | None = None
     compression: str = "zstd"
     fringe_dtype: str = "float32"
+    pose: PoseSettings = field(default_factory=PoseSettings)  # fixed, or scenes that move
+    # the prior probe (odmv.study.prior): every scene moved {offset_mm, tilt_deg} after its pose
+    move: dict | None = None
+    subset: tuple[int, ...] | None = None  # the scene indices rendered (None: all of them)
 
     @classmethod
     def from_dict(cls, c: dict) -> SimSettings:
@@ -107,6 +112,13 @@ class SimSettings:
             kw["shift"] = Shift(**c["shift"])
         if c.get("randomize"):
             kw["randomize"] = {k: [float(lo), float(hi)] for k, (lo, hi) in c["randomize"].items()}
+        if c.get("pose"):
+            kw["pose"] = PoseSettings.from_dict(c["pose"])
+        if c.get("move"):
+            kw["move"] = {"offset_mm": float(c["move"]["offset_mm"]),
+                          "tilt_deg": [float(a) for a in c["move"]["tilt_deg"]]}  # fmt: skip
+        if c.get("subset") is not None:
+            kw["subset"] = tuple(int(i) for i in c["subset"])
         return cls(**kw)
 
     def __post_init__(self):
@@ -130,11 +142,15 @@ class SimSettings:
         ]
         return [self.shift, *drawn]
 
+    def indices(self) -> tuple[int, ...]:
+        """The scene indices this dataset holds."""
+        return tuple(range(self.scenes)) if self.subset is None else self.subset
+
     def complete(self) -> bool:
         """Whether ``out`` already holds every scene of this dataset."""
         scenes = self.out / "scenes"
         return (self.out / MANIFEST).is_file() and all(
-            (scenes / scene_id(i)).is_dir() for i in range(self.scenes)
+            (scenes / scene_id(i)).is_dir() for i in self.indices()
         )
 
     def content_key(self) -> dict:
@@ -151,6 +167,10 @@ class SimSettings:
             # a nominal render keeps the key it had before shifts existed
             **({} if self.shift.nominal else {"shift": self.shift.to_dict()}),
             **({"randomize": self.randomize} if self.randomize else {}),
+            # a fixed pose keeps the key it had before poses existed
+            **({} if self.pose.fixed else {"pose": self.pose.to_dict()}),
+            **({"move": self.move} if self.move else {}),
+            **({"subset": list(self.subset)} if self.subset is not None else {}),
         }
 
 
@@ -184,13 +204,20 @@ def _manifest_for(s: SimSettings) -> Manifest:
     files = mesh_files_in(s.mesh_dir)
     labels = _split_labels(s.scenes, s.splits, s.seed)
     scenes = []
-    for i in range(s.scenes):
+    for i in s.indices():
         family = choose_family(s.family, s.mix, _scene_rng(s.seed, i))
         if family == "freeform" and not files and s.mesh_dir:
             raise SimulationError(f"{s.mesh_dir}: no .stl/.obj/.ply files found")
         scene = {"id": scene_id(i), "split": labels[i], "family": family}
         drawn = [x.to_dict() for x in s.scene_shifts(i, labels[i])[1:]]
-        scenes.append(scene | ({"shifts": drawn} if drawn else {}))
+        pose = s.pose.draw(s.seed, i, family)
+        scenes.append(
+            scene | ({"shifts": drawn} if drawn else {}) | ({"pose": pose} if pose else {})
+        )
+    # scenes that move span a working volume of their own: the net's depth units follow it
+    volume = {} if s.pose.fixed else {
+        "depth_range_mm": list(s.pose.depth_range_mm(s.rig.camera.working_distance_mm))
+    }  # fmt: skip
     return Manifest(
         root=s.out,
         height_px=s.height_px,
@@ -201,7 +228,7 @@ def _manifest_for(s: SimSettings) -> Manifest:
         rig=s.rig,
         images=s.images,
         scenes=scenes,
-        extra={"simulation": s.content_key()},
+        extra={"simulation": s.content_key()} | volume,
     )
 
 
@@ -220,7 +247,9 @@ def draw_scene_spec(s: SimSettings, index: int, mesh_cache: dict | None = None) 
     """The spec of scene ``index``: family by the mix proportions, then the family's draw."""
     rng = _scene_rng(s.seed, index)
     family = choose_family(s.family, s.mix, rng)
-    return draw_spec(family, rng, mesh_files_in(s.mesh_dir), mesh_cache)
+    pose = s.pose.draw(s.seed, index, family)
+    spec = draw_spec(family, rng, mesh_files_in(s.mesh_dir), mesh_cache, pose)
+    return spec | ({"move": s.move} if s.move else {})
 
 
 def render_and_write(s: SimSettings, index: int, spec: dict | None = None) -> str:
@@ -386,6 +415,8 @@ def simulate(
         raise SimulationError(f"resolution {s.height_px}x{s.width_px}: use multiples of 16")
     if s.scenes < 1:
         raise SimulationError(f"scenes: {s.scenes}; render at least one scene")
+    if s.subset is not None and not all(0 <= i < s.scenes for i in s.subset):
+        raise SimulationError(f"subset: scene indices must lie in 0..{s.scenes - 1}")
     if s.mesh_dir:
         refuse_inside("out", [s.out], [s.mesh_dir])
     manifest = _manifest_for(s)
@@ -399,7 +430,7 @@ def simulate(
     elif s.out.exists() and any(s.out.iterdir()):
         raise SimulationError(f"{s.out}: folder exists, is not empty and has no {MANIFEST}")
     scenes_dir = s.out / "scenes"
-    mine = range(s.scenes) if shard is None else range(shard[0], s.scenes, shard[1])
+    mine = s.indices() if shard is None else s.indices()[shard[0] :: shard[1]]
     todo = [i for i in mine if not (scenes_dir / scene_id(i)).is_dir()]
     skipped = len(mine) - len(todo)
     need = scene_bytes_bound(s) * len(todo)

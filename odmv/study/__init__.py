@@ -17,4 +17,5 @@ VERBS = {
     "phase": "phase",
     "captures": "captures",
     "graphs": "graphs",
+    "prior": "prior",
 }

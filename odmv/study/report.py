@@ -13,7 +13,9 @@ from odmv.io.runfolder import portable
 from odmv.study.captures import report_section
 from odmv.study.claims import claims_markdown
 from odmv.study.figures import FIGURE_SCENES, bar_chart, comparison_figures
+from odmv.study.prior import prior_section
 from odmv.study.results import (
+    EDGES,
     FIRST_VIEW,
     HELDOUT_SUBSETS,
     METRICS,
@@ -64,6 +66,7 @@ def table_markdown(name: str, cells: list[Cell]) -> list[str]:
         "MSE shadowed (mm²)",
         "RMSE shadowed (mm)",
         *[f"MAE {name} (mm)" for name in FIRST_VIEW.values()],
+        *[f"MAE {name} (mm)" for name in EDGES.values()],
         *[f"held-out MAE{' ' + name if name else ''} (mm)" for name in HELDOUT_SUBSETS.values()],
     ]
     head += ["coverage (%)"] if classical else []
@@ -75,7 +78,7 @@ def table_markdown(name: str, cells: list[Cell]) -> list[str]:
         cols = [c.row.label, str(len(c.runs)) if c.runs else "–"]
         for sub in ("", "_shadowed"):
             cols += [fmt(*c.stat(f"test/{m}{sub}")) for m in METRICS]
-        cols += [_subset_cell(c, f"test/mae_mm_{k}") for k in FIRST_VIEW]
+        cols += [_subset_cell(c, f"test/mae_mm_{k}") for k in (*FIRST_VIEW, *EDGES)]
         cols += [_subset_cell(c, f"heldout/mae_mm{subset_suffix(k)}") for k in HELDOUT_SUBSETS]
         if classical:
             cov = c.stat("test/coverage")[0]
@@ -118,7 +121,7 @@ def improvements_markdown(cells: list[Cell]) -> list[str]:
 
 
 def table_csv(path: Path, cells: list[Cell]) -> None:
-    subsets = ("", "_shadowed", "_unlit", *(f"_{k}" for k in FIRST_VIEW))
+    subsets = ("", "_shadowed", "_unlit", *(f"_{k}" for k in (*FIRST_VIEW, *EDGES)))
     keys = [f"test/{m}{s}" for s in subsets for m in METRICS]
     keys += ["test/coverage"] + [f"test/share{s}" for s in subsets[1:]]
     rows = []
@@ -232,7 +235,9 @@ def write_report(
         "pixels. `first-unlit`: pixels the first projector (right, the one view of every S = 1 "
         "row) leaves unlit and another lights, where only more views add fringes; most lie "
         "outside its footprint, a band of the field. `first-shadowed`: those inside its "
-        "footprint, hidden by occlusion. `–`: the row's records predate those two. held-out: the "
+        "footprint, hidden by occlusion. `interior`: pixels 2 px or more from a depth jump over "
+        "1 mm; `edge`: the rest, which mix two surfaces. `–`: the row's records predate a "
+        "subset. held-out: the "
         "same MAE over 200 fresh scenes of the same twin (odmv.study.heldout; `–`: the row was not "
         "scored there). epochs and "
         "threads: each seed's epochs trained and torch thread count, in seed order (`?`: not "
@@ -251,8 +256,9 @@ def write_report(
     lines += improvements_markdown(tables["table2"])
     lines += report_section(runs, tables["table2"], out)
     lines += claims_markdown(tables)
+    lines += prior_section([r.folder for r in runs])
     shares = []  # properties of the test split, alike in every run that has them
-    for k, name in ({"shadowed": "shadowed", "unlit": "unlit"} | FIRST_VIEW).items():
+    for k, name in ({"shadowed": "shadowed", "unlit": "unlit"} | FIRST_VIEW | EDGES).items():
         v = [r.metrics[f"test/share_{k}"] for r in runs if f"test/share_{k}" in r.metrics]
         shares += [f"{name} {100 * float(np.mean(v)):.1f} %"] if v else []
     if shares:

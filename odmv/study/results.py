@@ -20,8 +20,11 @@ METRICS = ("mae_mm", "mse_mm2", "rmse_mm")
 #: view has, as the report names them (odmv.data.subsets); newer than the others, so older
 #: records lack them
 FIRST_VIEW = {"first_unlit": "first-unlit", "first_shadowed": "first-shadowed"}
+#: the pixels away from depth jumps and the band along them (odmv.training.metrics): a net that
+#: measures is judged on the first, edge blur on the second; older records lack them
+EDGES = {"interior": "interior", "edge": "edge"}
 #: the held-out set's columns (odmv.study.heldout): every pixel, then the subsets as named above
-HELDOUT_SUBSETS = {"all": "", "shadowed": "shadowed"} | FIRST_VIEW
+HELDOUT_SUBSETS = {"all": "", "shadowed": "shadowed"} | FIRST_VIEW | {"interior": "interior"}
 SPLITS = {"test": "test split", "heldout": "held-out"}  # where a claim is judged
 
 

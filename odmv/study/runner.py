@@ -26,11 +26,12 @@ from odmv.classical.row import CAPTURES, classical_row
 from odmv.cli import task_overrides
 from odmv.config import compose_train
 from odmv.io.atomic import write_json, write_text
-from odmv.io.runfolder import CONFIG, HELDOUT, METRICS, PREDICTIONS, ROBUSTNESS, SCENES_CSV
+from odmv.io.runfolder import CONFIG, HELDOUT, METRICS, PREDICTIONS, PRIOR, ROBUSTNESS, SCENES_CSV
 from odmv.sim.shifts import parse_shift
 from odmv.study.adapt import run_adaptation
 from odmv.study.figures import FIGURE_SCENES, pick_scenes
 from odmv.study.heldout import HeldoutError, score_heldout
+from odmv.study.prior import moves, prior_section, probe_run
 from odmv.study.report import write_report
 from odmv.study.results import Run
 from odmv.study.robustness import SHIFTS, score_run
@@ -43,7 +44,7 @@ CLASSICAL_DIR = "classical"
 STUDY = "study.md"  # the table of a study's own rows
 RECORD = "reproduce.json"  # per row: the overrides that trained it and their key
 # a row's record, with the predictions of the figures' scenes (checkpoints and logs stay behind)
-KEPT = (METRICS, HELDOUT, ROBUSTNESS, RECORD, SCENES_CSV, CONFIG)
+KEPT = (METRICS, HELDOUT, ROBUSTNESS, PRIOR, RECORD, SCENES_CSV, CONFIG)
 QUIET = ["trainer.enable_progress_bar=false", "data.progress=false"]  # a run's log is a file
 RECORDERS = {
     "lightning.pytorch.callbacks.ModelCheckpoint",
@@ -303,7 +304,9 @@ def keep(folder: Path, record: Path) -> bool:
     if (
         trained_key(record) == trained_key(folder)
         and _text(record / METRICS) == metrics
-        and all(_text(record / name) == _text(folder / name) for name in (HELDOUT, ROBUSTNESS))
+        and all(
+            _text(record / name) == _text(folder / name) for name in (HELDOUT, ROBUSTNESS, PRIOR)
+        )
     ):
         return False
     tmp = record.with_name(f".{record.name}.tmp")
@@ -346,6 +349,29 @@ def _text(path: Path) -> str | None:
     return path.read_text() if path.is_file() else None
 
 
+def _interior(m: dict) -> str:
+    """ ", interior X mm" where the record has the interior MAE (odmv.training.metrics)."""
+    v = m.get("test/mae_mm_interior")
+    return "" if v is None else f", interior {v:.4f} mm"
+
+
+def classical_rows(dm, runs_dir: Path, records: Path) -> list[Path]:
+    """The classical reference on the test scenes: the full sequences, then the same pipeline
+    on fewer images per projector down to the one a network sees (the last capture is the full
+    row itself); each kept as a record. Returns their result folders."""
+    folders = []
+    for capture in (None, *CAPTURES[:-1]):
+        name = CLASSICAL_DIR if capture is None else capture.name
+        classical, kept = runs_dir / name, records / name
+        if not finished(classical, kept):
+            what = capture.label if capture else "phase shifting, full sequences"
+            print(f"classical reference ({what}, 4 projectors) on the test scenes", flush=True)
+            classical_row(dm.root, classical, resolution=dm.resolution, capture=capture)
+        keep(classical, kept)
+        folders.append(finished(classical, kept))
+    return folders
+
+
 def score(job: Job, threads: int | None, cfg: DictConfig) -> None:
     """Score a finished row on the held-out set and, where ``robustness.rows`` names it, on the
     shifted twins, once each, while its checkpoint is on disk."""
@@ -353,13 +379,25 @@ def score(job: Job, threads: int | None, cfg: DictConfig) -> None:
         held = score_heldout(job.folder, threads, cfg.heldout)
         print(
             f"    held-out MAE {held['test/mae_mm']:.4f} mm "
-            f"(shadowed {held['test/mae_mm_shadowed']:.4f} mm)",
+            f"(shadowed {held['test/mae_mm_shadowed']:.4f} mm{_interior(held)})",
             flush=True,
         )
     rob = cfg.get("robustness") or {}
     if any(fnmatch.fnmatch(job.folder.name, p) for p in rob.get("rows") or []):
         shifts = [parse_shift(s) for s in (rob.get("shifts") or SHIFTS)]
         score_run(job.folder, shifts, rob.get("scenes", 100), threads)
+    if cfg.get("prior") and not (job.folder / PRIOR).is_file():
+        r = probe_run(job.folder, moves(), threads, classical=True, cache=_PROBE_CACHE)
+        five = next(m for m in r["moves"] if m["offset_mm"] == 5.0)
+        print(
+            f"    prior probe: MAE x{five['ratio_mae_mm']:.2f} with the scene 5 mm farther, "
+            f"slope {r['slope_mm_per_mm']:+.4f} mm/mm",
+            flush=True,
+        )
+
+
+#: the classical method's figures on the probe's moved twins, shared by a call's rows
+_PROBE_CACHE: dict = {}
 
 
 def run_study(cfg: DictConfig, train: list[str]) -> Path:
@@ -373,6 +411,7 @@ def run_study(cfg: DictConfig, train: list[str]) -> Path:
     dm = hydra.utils.instantiate(base.data, _convert_="all")
     dm.prepare_data()  # renders the protocol's dataset once; every row reads it
     threads = base.get("threads")
+    classical = classical_rows(dm, runs_dir, records) if cfg.classical else []
     for job in jobs:  # rows finished before they were kept (or by hand) are kept now
         if finished(job.folder) and job.current():
             try:
@@ -405,7 +444,7 @@ def run_study(cfg: DictConfig, train: list[str]) -> Path:
         keep(job.folder, job.record)
         print(
             f"    {m['train_seconds'] / 60:.1f} min, test MAE {m['test/mae_mm']:.4f} mm "
-            f"(shadowed {m['test/mae_mm_shadowed']:.4f} mm)",
+            f"(shadowed {m['test/mae_mm_shadowed']:.4f} mm{_interior(m)})",
             flush=True,
         )
     if cfg.get("adapt"):  # label-free adaptation of finished runs (odmv.study.adapt)
@@ -415,23 +454,12 @@ def run_study(cfg: DictConfig, train: list[str]) -> Path:
     rows = dict(cfg.rows or {})
     if rows:  # a study's own rows: one table of them, each row's seeds together
         groups = [(label, [j.result() for j in jobs if j.rows & {label}]) for label in rows]
-        write_text(out / STUDY, "\n".join(summary_lines(groups)) + "\n")
+        probed = prior_section([f for _, fs in groups for f in fs if f is not None])
+        write_text(out / STUDY, "\n".join(summary_lines(groups) + ["", *probed]).rstrip() + "\n")
         print(f"study: {out / STUDY}", flush=True)
     if not cfg.tables:
         return out
-    folders = [j.result() for j in jobs if j.table]
-    if cfg.classical:
-        # the full sequences, then the same pipeline on fewer images per projector down to the
-        # one a network sees (the last capture is the full row itself)
-        for capture in (None, *CAPTURES[:-1]):
-            name = CLASSICAL_DIR if capture is None else capture.name
-            classical, kept = runs_dir / name, records / name
-            if not finished(classical, kept):
-                what = capture.label if capture else "phase shifting, full sequences"
-                print(f"classical reference ({what}, 4 projectors) on the test scenes", flush=True)
-                classical_row(dm.root, classical, resolution=dm.resolution, capture=capture)
-            keep(classical, kept)
-            folders.append(finished(classical, kept))
+    folders = [j.result() for j in jobs if j.table] + classical
     write_report(folders, out, protocol=protocol)
     minutes = (time.perf_counter() - t0) / 60
     print(f"report: {out / 'tables.md'} (this call: {minutes:.1f} min)")

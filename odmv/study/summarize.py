@@ -4,9 +4,10 @@
 
 Each argument is ``LABEL=GLOB`` (run folders holding metrics.json, and test_scenes.csv for the
 per-scene columns: a committed reproduction record keeps only metrics.json). Prints a markdown
-table: runs, test MAE / RMSE over all pixels, MAE over shadowed pixels, held-out MAE (where
-the runs were scored there), MAE per scene family, and the worst scene of each run (to find
-outliers before trusting a mean).
+table: runs, test MAE / RMSE over all pixels, MAE over shadowed pixels, over interior pixels
+and over the edge band (odmv.training.metrics; "–" for records before them), held-out MAE and
+its interior (where the runs were scored there), MAE per scene family, and the worst scene of
+each run (to find outliers before trusting a mean).
 """
 
 from __future__ import annotations
@@ -35,10 +36,11 @@ FAMILIES = ("primitives", "pcb", "freeform")
 def summary_lines(groups: list[tuple[str, list[Path]]]) -> list[str]:
     """The markdown table of labelled groups of finished run folders."""
     lines = [
-        "| variant | runs | MAE (mm) | RMSE (mm) | MAE shadowed (mm) | held-out MAE (mm) | "
+        "| variant | runs | MAE (mm) | RMSE (mm) | MAE shadowed (mm) | MAE interior (mm) | "
+        "MAE edge (mm) | held-out MAE (mm) | held-out MAE interior (mm) | "
         + " | ".join(f"MAE {f} (mm)" for f in FAMILIES)
         + " | worst scene (MAE mm) |",
-        "|---|---:|" + "---:|" * (5 + len(FAMILIES)),
+        "|---|---:|" + "---:|" * (8 + len(FAMILIES)),
     ]
     for label, folders in groups:
         m = [json.loads((f / METRICS).read_text()) for f in folders]
@@ -61,7 +63,10 @@ def summary_lines(groups: list[tuple[str, list[Path]]]) -> list[str]:
             _stat([x["test/mae_mm"] for x in m]),
             _stat([x["test/rmse_mm"] for x in m]),
             _stat([x["test/mae_mm_shadowed"] for x in m]),
+            _stat([x.get("test/mae_mm_interior", np.nan) for x in m]),
+            _stat([x.get("test/mae_mm_edge", np.nan) for x in m]),
             _stat([x["test/mae_mm"] for x in held]),
+            _stat([x.get("test/mae_mm_interior", np.nan) for x in held]),
             *(_stat(per_family[f]) for f in FAMILIES),
             "; ".join(worst) or "–",
         ]

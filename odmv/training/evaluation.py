@@ -246,6 +246,22 @@ def evaluate(cfg: DictConfig, overrides: list[str] | None = None) -> dict:
     return metrics
 
 
+def edges_line(metrics: dict, stage: str = "test") -> str:
+    """The MAE on interior and edge pixels with their shares, and a phase head's wrong fringe
+    orders: one line (empty for a record that predates them)."""
+    if f"{stage}/mae_mm_interior" not in metrics:
+        return ""
+    line = (
+        f"interior  : MAE {metrics[f'{stage}/mae_mm_interior']:.4f} mm on "
+        f"{metrics[f'{stage}/share_interior']:.1%} of the pixels; edge band (within 1 px of a "
+        f"depth jump > 1 mm): MAE {metrics[f'{stage}/mae_mm_edge']:.4f} mm on "
+        f"{metrics[f'{stage}/share_edge']:.1%}"
+    )
+    if f"{stage}/order_wrong" in metrics:
+        line += f"; wrong fringe orders {metrics[f'{stage}/order_wrong']:.2%} of lit view pixels"
+    return line + "\n"
+
+
 def report(metrics: dict) -> str:
     """The model and the constant-depth predictor in mm, overall and per scene family."""
     families = [
@@ -268,6 +284,7 @@ def report(metrics: dict) -> str:
     return (
         f"model     : MAE {metrics['test/mae_mm']:.4f} mm, RMSE {metrics['test/rmse_mm']:.4f} mm"
         f" (shadowed pixels: MAE {metrics['test/mae_mm_shadowed']:.4f} mm)\n"
+        + edges_line(metrics)
         + constant
         + ("\n" + tail if tail else "")
     )

@@ -12,7 +12,11 @@ footprint, unlit by one that covers it), ``unlit`` (lit by no projector), ``firs
 first projector's footprint), all from the dataset's ground truth of every
 projector, so models with different inputs compare; and the height bands ``h0_2``, ``h2_8`` and
 ``h8_up`` (mm above the base plane, the farthest valid depth of each image): where in height
-the error lies (tall parts are what a net that regresses shape places too low).
+the error lies (tall parts are what a net that regresses shape places too low); and the edge
+band ``edge`` (pixels within 1 px of a depth jump over 1 mm between neighbouring pixels of the
+ground truth: odmv.data.subsets.edge_band) and the rest, ``interior``. At 64 px the edge
+band is a sixth of the pixels and carries most of every net's MAE, and its pixels mix two
+surfaces; the interior is where a net must measure a surface, not place an edge.
 """
 
 from __future__ import annotations
@@ -20,11 +24,13 @@ from __future__ import annotations
 import torch
 from torchmetrics import Metric
 
-from odmv.data.subsets import MASKS
+from odmv.classical.geometry import offset_from_depth
+from odmv.data.subsets import MASKS, edge_band
 
 #: height bands (mm above the base plane): name -> (lowest, highest)
 HEIGHT_BANDS_MM = {"h0_2": (0.0, 2.0), "h2_8": (2.0, 8.0), "h8_up": (8.0, float("inf"))}
-SUBSETS = ("all", *MASKS, *HEIGHT_BANDS_MM)
+EDGE_BANDS = ("interior", "edge")
+SUBSETS = ("all", *MASKS, *HEIGHT_BANDS_MM, *EDGE_BANDS)
 
 
 def height_bands(depth_mm: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -32,6 +38,14 @@ def height_bands(depth_mm: torch.Tensor) -> dict[str, torch.Tensor]:
     plane = depth_mm.nan_to_num(float("-inf")).amax((-2, -1), keepdim=True)
     height = plane - depth_mm  # NaN where there is no depth: in no band
     return {k: ((height >= lo) & (height < hi)).float() for k, (lo, hi) in HEIGHT_BANDS_MM.items()}
+
+
+def edge_bands(depth_mm: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The ``interior`` and ``edge`` masks (B x 1 x H x W, 0/1) of depth maps (mm, NaN: none;
+    a pixel without depth is in neither)."""
+    valid = torch.isfinite(depth_mm)
+    edge = edge_band(depth_mm)
+    return {"interior": (valid & ~edge).float(), "edge": (valid & edge).float()}
 
 
 def _masked_sums(pred_mm, target_mm, mask) -> tuple[torch.Tensor, ...]:
@@ -118,3 +132,34 @@ class DepthErrors(Metric):
             "rmse_mm": self.rmse_sum / self.images,
             "pixels": self.pixels.clone(),
         }
+
+
+def wrong_orders(view_depth_mm, depth_mm, maps, lit) -> tuple[torch.Tensor, torch.Tensor]:
+    """A phase head's fringe orders against the truth: the number of lit view pixels whose
+    order is wrong (the view's depth, seen as its projector's offset, more than half a period
+    from the true depth's) and the number of lit view pixels. ``view_depth_mm`` B x S x H x W,
+    ``depth_mm`` B x 1 x H x W (NaN: none), ``maps`` the views' triangulation maps, ``lit`` B x
+    S x H x W (nonzero: the view's projector lights the pixel)."""
+    off = (offset_from_depth(view_depth_mm, maps) - offset_from_depth(depth_mm, maps)).abs()
+    counted = (lit > 0.5) & torch.isfinite(depth_mm)
+    wrong = counted & ~(off < maps[:, :, 1] / 2)  # NaN (an unlit view's depth) counts wrong
+    return wrong.sum().double(), counted.sum().double()
+
+
+class OrderErrors(Metric):
+    """The share of lit view pixels whose fringe order a phase head got wrong."""
+
+    full_state_update = False
+
+    def __init__(self):
+        super().__init__()
+        self.add_state("wrong", torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
+        self.add_state("lit", torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
+
+    def update(self, view_depth_mm, depth_mm, maps, lit) -> None:
+        wrong, lit = wrong_orders(view_depth_mm, depth_mm, maps, lit)
+        self.wrong += wrong
+        self.lit += lit
+
+    def compute(self) -> torch.Tensor:
+        return self.wrong / self.lit if self.lit > 0 else self.wrong.new_tensor(float("nan"))

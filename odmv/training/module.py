@@ -34,6 +34,8 @@ from odmv.training.losses import LossWeights, composite_loss, depth_loss
 from odmv.training.metrics import (
     SUBSETS,
     DepthErrors,
+    OrderErrors,
+    edge_bands,
     height_bands,
     per_image_subset_errors,
     subset_results,
@@ -129,6 +131,10 @@ class FPPModule(L.LightningModule):
         object.__setattr__(self, "_teacher_net", None)  # frozen, off the module tree
         self.metrics = torch.nn.ModuleDict(
             {f"{stage}_{subset}": DepthErrors() for stage in ("val", "test") for subset in SUBSETS}
+        )
+        # head=phase: the share of lit view pixels whose fringe order is wrong
+        self.order_errors = torch.nn.ModuleDict(
+            {stage: OrderErrors() for stage in ("val", "test")} if self.phase_head else {}
         )
         # where a test writes its per-scene metrics and predictions (set by the apps)
         self.test_dir: Path | None = None
@@ -313,6 +319,10 @@ class FPPModule(L.LightningModule):
         terms = composite_loss(out, batch, self.weights)
         for subset, mask in masks.items():
             self.metrics[f"{stage}_{subset}"].update(pred_mm, batch["depth_mm"], mask)
+        if stage in self.order_errors:
+            self.order_errors[stage].update(
+                out["view_depth_mm"], batch["depth_mm"], batch["calibration"], batch["lit"]
+            )
         self.log(f"{stage}/loss", terms["loss"], batch_size=bs, sync_dist=True)
         return out, pred_mm, masks
 
@@ -345,6 +355,9 @@ class FPPModule(L.LightningModule):
             self.log(name, value.float(), sync_dist=True)
         for subset in SUBSETS:
             self.metrics[f"{stage}_{subset}"].reset()
+        if stage in self.order_errors:
+            self.log(f"{stage}/order_wrong", self.order_errors[stage].compute().float())
+            self.order_errors[stage].reset()
 
     def on_validation_epoch_end(self):
         self._log_metrics("val")
@@ -485,11 +498,12 @@ def batched(sample: dict) -> dict:
 
 
 def subset_masks(batch: dict) -> dict[str, torch.Tensor]:
-    """Metric pixel masks (B x 1 x H x W) from the batch's ground truth: odmv.data.subsets and
-    the height bands of odmv.training.metrics."""
+    """Metric pixel masks (B x 1 x H x W) from the batch's ground truth: odmv.data.subsets, and
+    the height bands and edge bands of odmv.training.metrics."""
     valid = batch["valid"]
     masks = {"all": valid} | {k: batch[k] * valid for k in MASKS}
-    return masks | height_bands(batch["depth_mm"])
+    edges = {k: m * valid for k, m in edge_bands(batch["depth_mm"]).items()}
+    return masks | height_bands(batch["depth_mm"]) | edges
 
 
 def _gather(items: list) -> list:
