@@ -474,6 +474,26 @@ def _reproduce_cfg(overrides, runs, out):
     )
 
 
+@pytest.mark.slow
+def test_a_study_with_the_probe_and_the_classical_rows_keeps_both(tiny_dataset, tmp_path):
+    """prior=true probes every finished row (kept in its record, tabled in study.md), and a
+    study's classical=true scores the classical captures on its test scenes."""
+    overrides = _row_overrides(tiny_dataset, tmp_path)
+    runs, out = tmp_path / "runs", tmp_path / "study"
+    cfg = OmegaConf.merge(
+        _reproduce_cfg(overrides, runs, out),
+        {"tables": [], "classical": True, "heldout": 0, "prior": True},
+    )
+    cfg.rows = {"plain": ["model=unet", "widths.unet=4"]}
+    reproduce(cfg)
+    probe = json.loads((out / "runs" / "plain-seed0" / "prior.json").read_text())
+    assert [m["name"] for m in probe["moves"]] == ["none", "1 mm", "3 mm", "5 mm", "tilt 5 deg"]
+    assert probe["classical"]["moves"][3]["ratio_mae_mm_interior"] < 1.5
+    assert "### The prior probe" in (out / "study.md").read_text()
+    assert (out / "runs" / "classical" / "metrics.json").is_file()
+    assert (out / "runs" / "classical-3x1" / "metrics.json").is_file()
+
+
 def test_keeping_a_run_keeps_the_robustness_scores_its_record_gained(tmp_path):
     """`odmv.study robustness` scores a committed record in place; keeping the same run again
     must not drop those scores, while a record of another training result is replaced whole."""
