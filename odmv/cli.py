@@ -31,7 +31,7 @@ from lightning.pytorch.utilities import rank_zero_only
 from omegaconf.errors import OmegaConfBaseException
 
 from odmv.io.atomic import DISK_FULL
-from odmv.training.runlock import FAILED, LOCK
+from odmv.io.runfolder import FAILED, LOCK, lock_holder
 
 T = TypeVar("T")
 
@@ -113,8 +113,9 @@ def tool(name: str) -> str:
 
 
 def remove_if_empty(folder: Path | None) -> None:
-    """Delete a run folder that holds nothing but what every run writes at its start."""
-    if folder is None or not folder.is_dir():
+    """Delete a run folder that holds nothing but what every run writes at its start, unless
+    another live training holds it (a refused second run must not remove the first's)."""
+    if folder is None or not folder.is_dir() or lock_holder(folder) is not None:
         return
     if all(p.name in _STARTUP_FILES for p in folder.iterdir()):
         shutil.rmtree(folder, ignore_errors=True)

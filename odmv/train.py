@@ -62,7 +62,7 @@ from odmv.training.ema import WeightEMA
 from odmv.training.module import FPPModule, load_module
 from odmv.training.pace import CpuPace, EpochLine, busy_cores_note, heavy_on_cpu
 from odmv.training.provenance import provenance
-from odmv.training.runlock import check_new_run, holding
+from odmv.training.runlock import check_new_run, check_not_held, holding
 from odmv.training.sweep import append_row
 
 
@@ -507,6 +507,7 @@ def main(cfg: DictConfig) -> Metrics | JobFailed:
         else:
             run_cfg = cfg
         folders.append(Path(run_cfg.paths.output_dir))
+        check_not_held(folders[-1])  # before anything is moved into another run's folder
         adopt_hydra_files(hydra_dir, folders[-1])
         return run_cfg, train(run_cfg)
 

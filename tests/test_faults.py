@@ -317,6 +317,29 @@ def test_a_run_folder_belongs_to_one_run(trained, tiny_dataset, tmp_path):
     assert not (busy / LOCK).exists()
 
 
+def test_a_refused_second_run_leaves_the_running_runs_folder_as_it_was(tiny_dataset, tmp_path):
+    """A run that has written only its startup files (.hydra/, csv/, tensorboard/, run.lock)
+    is another run's all the same: a second training into it is refused and removes or
+    replaces nothing (it removed the folder, and replaced the first run's .hydra/)."""
+    running = tmp_path / "running"
+    for name in (".hydra", "csv", "tensorboard"):
+        (running / name).mkdir(parents=True)
+    (running / ".hydra" / "config.yaml").write_text("the first run's config\n")
+    (running / "csv" / "metrics.csv").write_text("epoch\n")
+    holder = subprocess.Popen(["sleep", "60"])
+    try:
+        (running / "run.lock").write_text(f"{holder.pid}\n")
+        before = {p: p.read_bytes() for p in running.rglob("*") if p.is_file()}
+        args = [*tiny_overrides(tiny_dataset, running), "hydra.run.dir=hydra"]
+        line = _one_line_error(_app("train", *args, cwd=tmp_path))
+        assert f"another run (pid {holder.pid}) is writing into it" in line
+        assert {p: p.read_bytes() for p in running.rglob("*") if p.is_file()} == before
+        assert not (tmp_path / "hydra").exists()  # the refused run's own folder is gone
+    finally:
+        holder.kill()
+        holder.wait()
+
+
 def test_a_failed_run_leaves_no_empty_folder_and_a_corrected_rerun_gets_its_own_config(
     tiny_dataset, tmp_path
 ):

@@ -3,10 +3,14 @@ classical row, or a reproduction's record of one) holds ``metrics.json`` (its te
 settings and provenance) and, where they were written or kept: ``heldout.json`` (its scores on
 the held-out set), ``robustness.json`` (its scores on shifted twins of its dataset),
 ``test_scenes.csv`` (per-scene errors), ``test_predictions.npz`` (predicted
-and true depth in mm), ``.hydra/config.yaml`` and ``checkpoints/``. How runs are found and read:
+and true depth in mm), ``.hydra/config.yaml`` and ``checkpoints/``; while a training writes into
+it, ``run.lock`` (the training's pid; odmv.training.runlock). How runs are found and read:
 :mod:`odmv.study.records`."""
 
+import os
 from pathlib import Path
+
+from odmv.io.atomic import alive
 
 METRICS = "metrics.json"
 HELDOUT = "heldout.json"
@@ -14,6 +18,8 @@ SCENES_CSV = "test_scenes.csv"
 PREDICTIONS = "test_predictions.npz"
 CONFIG = ".hydra/config.yaml"
 ROBUSTNESS = "robustness.json"
+LOCK = "run.lock"  # the pid of the training writing into the folder
+FAILED = "failed.txt"  # a failed training's error, beside what it wrote
 PRIOR = "prior.json"  # the prior probe (odmv.study.prior): MAE with the scene moved
 
 #: where a checkout keeps its datasets (conf/paths/default.yaml's data_dir)
@@ -49,3 +55,15 @@ def recorded_dataset(metrics: dict) -> Path:
         return path
     here = Path(DATA_DIR) / path.name
     return here if here.is_dir() else path
+
+
+def lock_holder(folder: Path) -> int | None:
+    """The pid of another live process that holds ``folder`` (its ``run.lock``), else None:
+    what is in such a folder is that process's, and nothing else may remove or replace it."""
+    lock = Path(folder) / LOCK
+    try:
+        text = lock.read_text().strip()
+    except OSError:
+        return None
+    holder = int(text) if text.isdigit() else None
+    return holder if holder is not None and holder != os.getpid() and alive(holder) else None

@@ -12,15 +12,22 @@ from pathlib import Path
 
 from lightning.pytorch.utilities import rank_zero_only
 
-from odmv.io.atomic import alive, write_text
-from odmv.io.runfolder import METRICS
-
-LOCK = "run.lock"
-FAILED = "failed.txt"
+from odmv.io.atomic import write_text
+from odmv.io.runfolder import FAILED, LOCK, METRICS, lock_holder
 
 
 class RunFolderError(ValueError):
     """The run folder is another run's."""
+
+
+def check_not_held(folder: Path) -> None:
+    """Refuse a folder another live training is writing into (before anything touches it)."""
+    holder = lock_holder(folder)
+    if holder is not None:
+        raise RunFolderError(
+            f"{folder}: another run (pid {holder}) is writing into it; wait for it to end, "
+            "or train into another folder"
+        )
 
 
 def check_new_run(folder: Path) -> None:
@@ -49,14 +56,8 @@ def holding(folder: Path) -> Iterator[None]:
     try:
         fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
     except FileExistsError:
-        text = lock.read_text().strip() if lock.is_file() else ""
-        holder = int(text) if text.isdigit() else None
-        if holder is not None and holder != os.getpid() and alive(holder):
-            raise RunFolderError(
-                f"{folder}: another run (pid {holder}) is writing into it; wait for it to end, "
-                "or train into another folder"
-            ) from None
-        fd = os.open(lock, os.O_WRONLY | os.O_TRUNC)  # a killed run's lock
+        check_not_held(folder)
+        fd = os.open(lock, os.O_WRONLY | os.O_TRUNC)  # a killed run's lock (or this process's)
     with os.fdopen(fd, "w") as fh:
         fh.write(f"{os.getpid()}\n")
     (folder / FAILED).unlink(missing_ok=True)
