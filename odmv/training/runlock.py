@@ -21,7 +21,10 @@ class RunFolderError(ValueError):
 
 
 def check_not_held(folder: Path) -> None:
-    """Refuse a folder another live training is writing into (before anything touches it)."""
+    """Refuse a folder another live training is writing into (before anything touches it);
+    a DDP run's other ranks write into the folder its first process holds."""
+    if rank_zero_only.rank != 0:
+        return
     holder = lock_holder(folder)
     if holder is not None:
         raise RunFolderError(
