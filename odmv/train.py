@@ -62,7 +62,7 @@ from odmv.training.ema import WeightEMA
 from odmv.training.module import FPPModule, load_module
 from odmv.training.pace import CpuPace, EpochLine, busy_cores_note, heavy_on_cpu
 from odmv.training.provenance import provenance
-from odmv.training.runlock import check_new_run, check_not_held, holding
+from odmv.training.runlock import RunFolderError, check_new_run, check_not_held, holding
 from odmv.training.sweep import append_row
 
 
@@ -167,6 +167,7 @@ def resumed_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
     out = _moved_targets(OmegaConf.load(saved))
     _override(out, cfg, overrides, ("resume", "ckpt_path"), f"the run in {run}", "resume")
     out.ckpt_path = str(run / "checkpoints" / "last.ckpt")
+    out.resume = str(run)  # continued on purpose: a finished run may be trained further
     return out
 
 
@@ -288,6 +289,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     ckpt = read_checkpoint(cfg.ckpt_path) if cfg.ckpt_path else None
     continuing = ckpt is not None and (run := run_folder_of(cfg.ckpt_path)) is not None
+    if continuing and not cfg.get("resume"):
+        refuse_finished(cfg.ckpt_path, run)
     if continuing:
         cfg.paths.output_dir = str(run)
         rank_zero_print(f"continuing {run} from epoch {ckpt.get('epoch', 0) + 1}")
@@ -507,6 +510,7 @@ def main(cfg: DictConfig) -> Metrics | JobFailed:
         else:
             run_cfg = cfg
         folders.append(Path(run_cfg.paths.output_dir))
+        check_continued_folder(run_cfg, task_overrides())
         check_not_held(folders[-1])  # before anything is moved into another run's folder
         adopt_hydra_files(hydra_dir, folders[-1])
         return run_cfg, train(run_cfg)
@@ -528,6 +532,37 @@ def main(cfg: DictConfig) -> Metrics | JobFailed:
         )
         rank_zero_print(f"  its page: {tool('python')} -m odmv.view {out}")
     return Metrics(metrics, run_cfg.get("optimized_metric"))
+
+
+def refuse_finished(ckpt_path, run: Path) -> None:
+    """``ckpt_path=`` of a finished run's checkpoint would train that run again in place."""
+    if (run / METRICS).is_file():
+        raise RunFolderError(
+            f"ckpt_path={ckpt_path}: {run} holds a finished run, which this would train "
+            f"again in place; train it further with resume={run} trainer.max_epochs=N, or "
+            f"start a new run from its weights with init_from={run}"
+        )
+
+
+def check_continued_folder(cfg: DictConfig, overrides: list[str]) -> None:
+    """``ckpt_path=`` of a checkpoint in a run folder continues that folder; refused where the
+    command names another folder for the run (it would write where it was not pointed)."""
+    # where the run writes: paths.output_dir where named, else Hydra's folder where named
+    named = [o for o in overrides if o.startswith("paths.output_dir=")] or [
+        o for o in overrides if o.startswith("hydra.run.dir=")
+    ]
+    run = run_folder_of(cfg.ckpt_path) if cfg.get("ckpt_path") else None
+    if cfg.get("resume") or run is None:
+        return
+    refuse_finished(cfg.ckpt_path, run)
+    if not named:
+        return
+    if Path(named[-1].split("=", 1)[1]).resolve() != run:
+        raise RunFolderError(
+            f"ckpt_path={cfg.ckpt_path} continues the run in {run}, not {named[-1]}; continue "
+            f"it with resume={run}, or start a new run from its weights with "
+            f"init_from={run}"
+        )
 
 
 def adopt_hydra_files(hydra_dir: Path, out: Path) -> None:

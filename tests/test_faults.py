@@ -340,6 +340,26 @@ def test_a_refused_second_run_leaves_the_running_runs_folder_as_it_was(tiny_data
         holder.wait()
 
 
+def test_ckpt_path_never_trains_a_finished_run_again_nor_writes_elsewhere(
+    trained, tiny_dataset, tmp_path
+):
+    """ckpt_path= of a finished run's checkpoint is refused (it retrained that run in place,
+    ignoring paths.output_dir); of an unfinished run's, with another folder named, too."""
+    finished = shutil.copytree(trained[0], tmp_path / "finished")
+    before = {p: p.read_bytes() for p in finished.rglob("*") if p.is_file()}
+    new = tmp_path / "new"
+    last = finished / "checkpoints" / "last.ckpt"
+    args = [*tiny_overrides(tiny_dataset, new), f"ckpt_path={last}", "hydra.run.dir=hydra"]
+    line = _one_line_error(_app("train", *args, cwd=tmp_path))
+    assert "holds a finished run" in line and f"init_from={finished}" in line
+    assert {p: p.read_bytes() for p in finished.rglob("*") if p.is_file()} == before
+    assert not new.exists() and not (tmp_path / "hydra").exists()
+    (finished / "metrics.json").unlink()  # an interrupted run: continued in its own folder only
+    line = _one_line_error(_app("train", *args, cwd=tmp_path))
+    assert f"continues the run in {finished}" in line and f"resume={finished}" in line
+    assert not new.exists() and not (finished / "failed.txt").exists()
+
+
 def test_a_failed_run_leaves_no_empty_folder_and_a_corrected_rerun_gets_its_own_config(
     tiny_dataset, tmp_path
 ):

@@ -4,6 +4,7 @@ output and big or broken simulations: each through the real apps at tiny sizes."
 import csv
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -79,7 +80,8 @@ def test_evaluate_reports_a_truncated_checkpoint_in_one_line(trained, tmp_path):
 
 
 def test_continuing_another_net_names_what_differs(trained, tiny_dataset, tmp_path):
-    out, _ = trained
+    out = shutil.copytree(trained[0], tmp_path / "run")
+    (out / "metrics.json").unlink()  # as a run interrupted before its test
     last = out / "checkpoints" / "last.ckpt"
     cfg = compose_config(
         "train",
@@ -94,6 +96,7 @@ def test_continuing_another_net_names_what_differs(trained, tiny_dataset, tmp_pa
     )
     with pytest.raises(CheckpointError, match=r"views right,down,left,up \(this run right,up\)"):
         train(cfg)
+    assert not (out / "failed.txt").exists()  # a refused checkpoint is no failure of that run
 
 
 # ---------------------------------------------------------------- resume in place

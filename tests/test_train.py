@@ -96,6 +96,7 @@ def test_quarter_turn_augmentation_trains_a_one_view_net(tiny_dataset, tmp_path,
 
 def test_resume_continues_from_the_saved_epoch(trained, tiny_dataset, tmp_path):
     out = shutil.copytree(trained[0], tmp_path / "run")  # continued in place: the copy
+    (out / "metrics.json").unlink()  # as a run interrupted before its test
     last = out / "checkpoints" / "last.ckpt"
     before = torch.load(last, weights_only=True)
     assert before["epoch"] == 0 and before["global_step"] == 2
@@ -218,6 +219,7 @@ def test_weight_ema_is_validated_checkpointed_and_tested(tiny_dataset, tmp_path)
     # writes it only at a new best); resuming restores both the raw weights and the average
     last = tmp_path / "checkpoints" / "last.ckpt"
     assert best["epoch"] == 0 and torch.load(last, weights_only=True)["global_step"] == 4
+    (tmp_path / "metrics.json").unlink()  # as a run interrupted before its test
     cont = tiny_overrides(
         tiny_dataset, tmp_path, "ema=0.5", "trainer.max_epochs=3", f"ckpt_path={last}", "test=false"
     )

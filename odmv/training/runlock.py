@@ -14,6 +14,7 @@ from lightning.pytorch.utilities import rank_zero_only
 
 from odmv.io.atomic import write_text
 from odmv.io.runfolder import FAILED, LOCK, METRICS, lock_holder
+from odmv.training.checkpoint import CheckpointError
 
 
 class RunFolderError(ValueError):
@@ -66,6 +67,8 @@ def holding(folder: Path) -> Iterator[None]:
     (folder / FAILED).unlink(missing_ok=True)
     try:
         yield
+    except CheckpointError:  # a checkpoint that does not fit: the command's, not the run's fault
+        raise
     except BaseException as exc:
         line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         write_text(folder / FAILED, f"{type(exc).__name__}: {line}\n")
