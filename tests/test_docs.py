@@ -62,7 +62,10 @@ def _recorded_numbers() -> list[float]:
 
 
 def _maes(tree) -> list[float]:
-    """The MAE values of a record (metrics by name, nested per shift in robustness.json)."""
+    """The MAE values of a record (metrics by name, nested per shift in robustness.json and
+    per move in prior.json)."""
+    if isinstance(tree, list):
+        return [x for v in tree for x in _maes(v)]
     if not isinstance(tree, dict):
         return []
     found = [v for k, v in tree.items() if "mae" in k and isinstance(v, float)]
