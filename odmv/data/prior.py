@@ -51,13 +51,9 @@ def prior_summary(m: Manifest) -> dict:
     for fam, parts in sorted(per_family.items()):
         d = np.concatenate(parts)
         constant[fam] = float(np.abs(d - np.median(d)).mean())
+    stats = {"mean": np.mean, "std": np.std, "min": np.min, "max": np.max}
     return {
-        "background_mm": {
-            "mean": float(b.mean()) if b.size else float("nan"),
-            "std": float(b.std()) if b.size else float("nan"),
-            "min": float(b.min()) if b.size else float("nan"),
-            "max": float(b.max()) if b.size else float("nan"),
-        },
+        "background_mm": {k: float(f(b)) if b.size else float("nan") for k, f in stats.items()},
         "constant_mae_mm": constant,
     }
 

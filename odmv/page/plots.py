@@ -83,12 +83,13 @@ def band_errors(scene: Scene) -> list[tuple[str, list[float]]]:
     shadowed = (scene.subsets & SHADOWED_BIT) > 0 if scene.subsets is not None else None
     truth = torch.from_numpy(np.ascontiguousarray(scene.truth_mm, np.float32))[None, None]
     edge = edge_band(truth)[0, 0].numpy()
+    bands = [(height >= lo) & (height < hi) for lo, hi in HEIGHT_BANDS_MM.values()]
+    bands += [~edge, edge]
     out = []
     for label, pred in scene.predictions.items():
         err = np.abs(pred - scene.truth_mm)
         row = [float(np.nanmean(err))]
-        bands = [(height >= lo) & (height < hi) for lo, hi in HEIGHT_BANDS_MM.values()]
-        for band in (*bands, ~edge, edge):
+        for band in bands:
             band = band & np.isfinite(err)
             row.append(float(err[band].mean()) if band.any() else float("nan"))
         if shadowed is not None:

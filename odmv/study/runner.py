@@ -372,6 +372,10 @@ def classical_rows(dm, runs_dir: Path, records: Path) -> list[Path]:
     return folders
 
 
+#: the classical method's figures on the probe's moved twins, shared by a call's rows
+_PROBE_CACHE: dict = {}
+
+
 def score(job: Job, threads: int | None, cfg: DictConfig) -> None:
     """Score a finished row on the held-out set and, where ``robustness.rows`` names it, on the
     shifted twins, once each, while its checkpoint is on disk."""
@@ -394,10 +398,6 @@ def score(job: Job, threads: int | None, cfg: DictConfig) -> None:
             f"slope {r['slope_mm_per_mm']:+.4f} mm/mm",
             flush=True,
         )
-
-
-#: the classical method's figures on the probe's moved twins, shared by a call's rows
-_PROBE_CACHE: dict = {}
 
 
 def run_study(cfg: DictConfig, train: list[str]) -> Path:
