@@ -19,9 +19,12 @@ import logging
 import os
 import re
 import shutil
+import signal
 import sys
+import threading
 import warnings
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
@@ -112,12 +115,29 @@ def tool(name: str) -> str:
         return str(path)
 
 
+#: output folders the command line named that existed before the command ran: the user's
+_EXISTING: set[Path] = set()
+_OUTPUT_KEYS = ("out", "paths.output_dir", "hydra.run.dir")
+
+
+def note_existing_outputs(argv: list[str]) -> None:
+    """Remember which output folders named on the command line exist already (before Hydra
+    creates its run folder), so that a failure removes only folders the command created."""
+    for arg in argv:
+        key, _, value = arg.lstrip("+~").partition("=")
+        if key in _OUTPUT_KEYS and value and Path(value).is_dir():
+            _EXISTING.add(Path(value).resolve())
+
+
 def remove_if_empty(folder: Path | None) -> None:
     """Delete a run folder that holds nothing but what every run writes at its start, unless
-    another live training holds it (a refused second run must not remove the first's)."""
+    the command did not create it (a folder the user had, or one another live training holds:
+    a refused second run must not remove the first's)."""
     if folder is None or not folder.is_dir() or lock_holder(folder) is not None:
         return
-    if all(p.name in _STARTUP_FILES for p in folder.iterdir()):
+    if folder.resolve() in _EXISTING:
+        return
+    if all(p.name in _STARTUP_FILES or _empty_folder(p) for p in folder.iterdir()):
         shutil.rmtree(folder, ignore_errors=True)
         here = Path.cwd().resolve()
         for parent in folder.resolve().parents:  # outputs/<task>/ left empty by it
@@ -126,14 +146,56 @@ def remove_if_empty(folder: Path | None) -> None:
             parent.rmdir()
 
 
+def _empty_folder(path: Path) -> bool:
+    return path.is_dir() and not any(path.iterdir())
+
+
 class Interrupted(Exception):
-    """A run stopped by a signal (SIGTERM from a scheduler or ``kill``): one line naming the
-    run and how to continue it, and the shell's status for that signal (128 + its number), so
-    a script or SLURM does not count the run as finished."""
+    """A run stopped by a signal (Ctrl-C, or SIGTERM from a scheduler or ``kill``): one line
+    naming what was stopped and what it left, and the shell's status for that signal (128 + its
+    number), so a script or SLURM does not count the run as finished."""
 
     def __init__(self, message: str, signal_number: int):
         super().__init__(message)
         self.exit_status = 128 + signal_number
+
+
+#: what every app but a training's fit leaves when stopped: its files are written whole
+#: (odmv.io.atomic) or staged and moved into place together (export), so a rerun finishes it
+STOPPED = "no file was left half-written; run the command again to finish"
+
+_deferred = False  # a handler of its own takes SIGTERM (a training's fit: Lightning's)
+_terminated = False  # SIGTERM arrived: whatever a library wrapped the stop in, it is a stop
+
+
+@contextmanager
+def sigterm_deferred():
+    """Within, SIGTERM is left to the code that runs (Lightning stops a fit at a step's end and
+    the app says how to resume); outside, :func:`run_app` stops the app at once."""
+    global _deferred
+    before, _deferred = _deferred, True
+    try:
+        yield
+    finally:
+        _deferred = before
+
+
+def _stop_on_sigterm(signum, frame) -> None:
+    global _terminated
+    if not _deferred:
+        _terminated = True
+        raise _sigterm_stop()
+
+
+def _sigterm_stop() -> Interrupted:
+    return Interrupted(f"stopped by SIGTERM; {STOPPED}", signal.SIGTERM)
+
+
+def _catch_sigterm() -> None:
+    """Turn SIGTERM into :class:`Interrupted`, so the app's ``finally`` clauses and staged
+    writes clean up as they do on Ctrl-C (the default action ends the process on the spot)."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _stop_on_sigterm)
 
 
 @dataclass(frozen=True)
@@ -152,8 +214,16 @@ def run_app(
     (in a multirun: return JobFailed). ``run_dir``: the run folder(s) to remove if the failed
     run left them empty (a list may grow while the body runs)."""
     quiet_lightning()
+    _catch_sigterm()
     try:
-        return fn()
+        try:
+            return fn()
+        except KeyboardInterrupt:
+            raise Interrupted(f"stopped by Ctrl-C; {STOPPED}", signal.SIGINT) from None
+        except Exception as exc:  # (the ONNX exporter wraps the stop in an error of its own)
+            if _terminated and not isinstance(exc, Interrupted):
+                raise _sigterm_stop() from None
+            raise
     except (ValueError, OSError, Interrupted, *_WRAPPERS) as exc:
         if traceback_wanted():
             raise
@@ -199,6 +269,7 @@ def app(config_name: str) -> Callable:
         def main(*args, **kwargs):
             from hydra._internal import utils
 
+            note_existing_outputs(sys.argv[1:])
             original = utils.run_and_report
             utils.run_and_report = _report_in_one_line
             try:
@@ -230,7 +301,11 @@ def _report_in_one_line(func: Callable[[], T]) -> T:
 
 def hydra_line(exc: BaseException) -> str:
     """One line for an error of Hydra's composition, naming the key and the valid choices."""
-    from hydra.errors import ConfigCompositionException, MissingConfigException
+    from hydra.errors import (
+        ConfigCompositionException,
+        MissingConfigException,
+        OverrideParseException,
+    )
 
     if isinstance(exc, MissingConfigException):  # (an OSError too, for Hydra)
         if exc.missing_cfg_file and exc.options:
@@ -239,6 +314,8 @@ def hydra_line(exc: BaseException) -> str:
         return str(exc).strip().splitlines()[0]
     if isinstance(exc, OSError):  # writing the run folder's .hydra: name that folder
         return _os_line(exc, _hydra_output_dir(exc))
+    if isinstance(exc, OverrideParseException):
+        return _override_line(exc.override, str(exc))
     cause = exc.__cause__
     if isinstance(exc, ConfigCompositionException) and isinstance(cause, OmegaConfBaseException):
         key, parent = getattr(cause, "full_key", None), getattr(cause, "parent_node", None)
@@ -251,6 +328,16 @@ def hydra_line(exc: BaseException) -> str:
                 f"; did you mean {'.'.join(filter(None, [prefix, close[0]]))}?" if close else ""
             )
     return _one_line(exc)
+
+
+def _override_line(override: str, message: str) -> str:
+    """One line for a command-line override Hydra's grammar cannot read, with the quoting
+    that makes it readable (it takes unquoted values of ASCII letters, digits and a few signs)."""
+    key, _, value = override.partition("=")
+    if not value.isascii() or any(c in value for c in " ()[]{}',:="):
+        quoted = value.replace('"', '\\"')
+        return f"{key}: Hydra reads this value only quoted; write '{key}=\"{quoted}\"'"
+    return f"{override}: {message.strip().splitlines()[0]}"
 
 
 def _hydra_output_dir(exc: BaseException) -> str | None:

@@ -198,6 +198,16 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
         raise ValueError("ckpt_path: give a checkpoint or model.onnx (or method=psp)")
     predictor = load_predictor(cfg.ckpt_path) if cfg.method == "net" else None
     views = predictor.views if predictor else list(VIEW_NAMES)
+    unknown = [v for v in cfg.get("views") or [] if v not in views]
+    if unknown:  # before anything is written
+        raise DataError(
+            f"views={list(cfg.views)}: no view {unknown[0]!r}; "
+            + (
+                f"the net knows only {', '.join(views)}"
+                if predictor
+                else f"known views are {', '.join(views)}"
+            )
+        )
     if predictor is not None or cfg.method == "ftp":
         names = list(cfg.get("views") or views)
     else:
@@ -413,8 +423,8 @@ def write_outputs(
 
 @app("predict")
 def main(cfg: DictConfig) -> None:
-    # a folder the user named is theirs: never removed, even when the prediction fails
-    results = run_app(lambda: predict(cfg), None if cfg.out else cfg.paths.output_dir)
+    # a folder the user had is theirs: never removed, even when the prediction fails (odmv.cli)
+    results = run_app(lambda: predict(cfg), cfg.out or cfg.paths.output_dir)
     if len(results) == 1:  # (method=psp without a calibration wrote the phase only)
         names = {"depth": "depth (mm)", "points": "point cloud", "phase": "phase (rad)"}
         print("\n".join(f"{names[k]}: {results[0][k]}" for k in names if results[0].get(k)))

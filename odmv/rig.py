@@ -45,6 +45,8 @@ _AZIMUTH_XY: dict[str, tuple[float, float]] = {
 
 def check_views(views: list[str] | tuple[str, ...]) -> tuple[str, ...]:
     """Return ``views`` in canonical order; raise ValueError naming any unknown view."""
+    if not views:
+        raise ValueError(f"no view named; name at least one of {', '.join(VIEW_NAMES)}")
     unknown = [v for v in views if v not in VIEW_NAMES]
     if unknown:
         raise ValueError(f"unknown view name(s) {unknown}; known views are {list(VIEW_NAMES)}")
@@ -53,9 +55,28 @@ def check_views(views: list[str] | tuple[str, ...]) -> tuple[str, ...]:
     return tuple(v for v in VIEW_NAMES if v in views)
 
 
-def size_hw(resolution: int | list[int] | tuple[int, int]) -> tuple[int, int]:
-    """A resolution setting (one int for square images, or [height, width]) as (H, W)."""
-    return (resolution, resolution) if isinstance(resolution, int) else tuple(resolution)
+def size_hw(
+    resolution: int | list[int] | tuple[int, int], key: str = "resolution"
+) -> tuple[int, int]:
+    """A resolution setting (one int for square images, or [height, width]) as (H, W); a
+    ValueError naming ``key`` for anything but one or two positive whole numbers."""
+    sizes = [resolution] if isinstance(resolution, (int, float, str)) else list(resolution)
+    if len(sizes) not in (1, 2):
+        raise ValueError(f"{key}={resolution}: one size (square) or [height, width] in pixels")
+    h, *w = (whole_number(n, key, 1, "image sizes are at least 1 px") for n in sizes)
+    return h, (w[0] if w else h)
+
+
+def whole_number(value, key: str, low: int, what: str) -> int:
+    """Setting ``key``'s ``value`` as an int of at least ``low``, else a ValueError that names
+    the key and says ``what`` is allowed."""
+    text = str(value).strip()
+    if isinstance(value, (bool, float)) or not text.lstrip("+-").isdigit():
+        raise ValueError(f"{key}={value!r}: not a whole number; {what}")
+    number = int(text)
+    if number < low:
+        raise ValueError(f"{key}={number}: {what}")
+    return number
 
 
 @dataclass(frozen=True)
@@ -74,6 +95,11 @@ class CameraSpec:
     working_distance_mm: float = 150.0
     focal_length_mm: float | None = None
     distortion: tuple[float, float, float, float] = (-0.05, 0.01, 1e-4, -1e-4)
+
+    def __post_init__(self):
+        _positive("camera", self, ("width_px", "height_px", "pixel_um", "working_distance_mm"))
+        _positive("camera", self, ("field_mm",) if self.focal_length_mm is None else ())
+        _positive("camera", self, ("focal_length_mm",) if self.focal_length_mm is not None else ())
 
     @property
     def sensor_mm(self) -> tuple[float, float]:
@@ -106,6 +132,23 @@ class ProjectorSpec:
     field_mm: tuple[float, float] = (40.0, 23.0)
     tilt_deg: float = 26.0
     distance_mm: float = 167.0
+
+    def __post_init__(self):
+        _positive("projector", self, ("width_px", "height_px", "field_mm", "distance_mm"))
+        if not -90 < self.tilt_deg < 90:
+            raise ValueError(f"projector.tilt_deg: {self.tilt_deg}; between -90 and 90 degrees")
+
+
+def _positive(part: str, spec, names: tuple[str, ...]) -> None:
+    """Refuse a hardware setting that is not a positive number (a zero divides, a negative
+    distance turns a device round), naming it."""
+    for name in names:
+        value = getattr(spec, name)
+        values = value if isinstance(value, (tuple, list)) else (value,)
+        if not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for v in values
+        ):
+            raise ValueError(f"{part}.{name}: {value}; a positive number")
 
 
 @dataclass(frozen=True)

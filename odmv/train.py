@@ -8,6 +8,7 @@ with the run's overrides) into the run folder; multiruns also collect every job 
 
 from __future__ import annotations
 
+import json
 import shutil
 import signal
 import sys
@@ -32,12 +33,14 @@ from odmv.cli import (
     remove_if_empty,
     run_app,
     set_threads,
+    sigterm_deferred,
     task_overrides,
     tool,
 )
 from odmv.io.atomic import write_json, write_text
 from odmv.io.manifest import MANIFEST, load_manifest
-from odmv.io.runfolder import CONFIG, METRICS, portable, portable_record
+from odmv.io.runfolder import CALIBRATION_CHECK, CONFIG, METRICS, portable, portable_record
+from odmv.rig import whole_number
 from odmv.training.adaptation import (
     CHECK_SOURCES,
     check_calibration,
@@ -98,11 +101,19 @@ def run_summary(cfg: DictConfig) -> dict:
     }
 
 
+def check_numbers(cfg: DictConfig) -> None:
+    """The whole-number settings a run needs, each refused by name before anything starts."""
+    whole_number(cfg.seed, "seed", 0, "a seed is 0 or more")
+    whole_number(cfg.data.batch_size, "data.batch_size", 1, "at least 1")
+    epochs = cfg.trainer.get("max_epochs")
+    what = "at least 1 (or -1 with trainer.max_steps)"
+    if epochs is not None and whole_number(epochs, "trainer.max_epochs", -1, what) == 0:
+        raise ValueError(f"trainer.max_epochs=0: {what}")
+
+
 def build(cfg: DictConfig):
     """Data module, module, trainer from a composed config (shared with evaluation)."""
-    epochs = cfg.trainer.get("max_epochs")
-    if epochs is not None and (int(epochs) == 0 or int(epochs) < -1):
-        raise ValueError(f"trainer.max_epochs: {epochs}; at least 1 (or -1 with trainer.max_steps)")
+    check_numbers(cfg)
     data_cfg = data_config(cfg)
     dm = hydra.utils.instantiate(data_cfg, _convert_="all")
     module = FPPModule(
@@ -282,6 +293,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     checkpoint in a run folder (``ckpt_path=RUN/checkpoints/last.ckpt``) continues that
     folder: its TensorBoard and CSV logs, and its best checkpoint."""
     set_threads(cfg.get("threads"))
+    check_numbers(cfg)
     if str(cfg.trainer.get("accelerator", "auto")) == "cpu" or not torch.cuda.is_available():
         note = busy_cores_note(torch.get_num_threads())
         if note:
@@ -308,6 +320,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
     if not (out_dir / CONFIG).is_file() or (fine_tune and ckpt is None):
         write_text(out_dir / CONFIG, OmegaConf.to_yaml(cfg))
     dm, module, trainer = build(cfg)
+    dm.check_splits(bool(cfg.test) and not fine_tune)  # a user's scenes may all adapt
     if ckpt is not None:
         check_fits(cfg.ckpt_path, ckpt, module.hparams.net_cfg, list(dm.views))
         check_weights(cfg.ckpt_path, ckpt["state_dict"], module.state_dict())
@@ -328,10 +341,15 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
         if module.adapt.target == "classical":  # resumed runs decode again
             covered, classical_offsets = _classical_targets(dm, module)
             calibration |= covered
-        if ckpt is None:
-            calibration |= _checked_calibration(cfg, dm, module, classical_offsets)
+        if ckpt is None:  # checked once, on the starting net; a resumed run reads it back
+            check = _checked_calibration(cfg, dm, module, classical_offsets)
+            write_json(out_dir / CALIBRATION_CHECK, check)
+        else:
+            check = _recorded_check(out_dir)
+        calibration |= check
     try:
-        trainer.fit(module, datamodule=dm, ckpt_path=cfg.ckpt_path, weights_only=True)
+        with sigterm_deferred():
+            trainer.fit(module, datamodule=dm, ckpt_path=cfg.ckpt_path, weights_only=True)
     except SIGTERMException:  # Lightning's is a SystemExit without a status: exit 0
         raise _interrupted(out_dir, trainer, signal.SIGTERM) from None
     except SystemExit:  # Lightning ends a Ctrl-C with exit(1) after its graceful shutdown
@@ -422,6 +440,13 @@ def _classical_targets(dm, module: FPPModule) -> tuple[dict, dict[str, float]]:
         f"{time.perf_counter() - t0:.0f} s, {100 * covered:.0f} % of their pixels"
     )
     return {"classical_covered": round(covered, 4)}, offsets
+
+
+def _recorded_check(out_dir: Path) -> dict:
+    """The calibration check a fine-tune made on its starting net, as its first start wrote it
+    (a run begun before the check was kept has none)."""
+    path = out_dir / CALIBRATION_CHECK
+    return json.loads(path.read_text()) if path.is_file() else {}
 
 
 def _checked_calibration(

@@ -341,12 +341,15 @@ def test_an_adapted_run_resumes_on_the_users_data(base_run, sequences, tmp_path)
     assert first.returncode == 0, first.stderr[-2000:]
     saved = OmegaConf.load(run / ".hydra" / "config.yaml")
     assert saved.data.root == str(sequences[1].resolve()) and saved.adaptation.lr == 3e-4
+    kept = ("calibration_check", "view_offsets_mm", "view_spread_mm")
+    checked = {k: json.loads((run / "metrics.json").read_text())[k] for k in kept}
     again = subprocess.run([*app, f"resume={run}", "trainer.max_epochs=2"], cwd=tmp_path,
                            capture_output=True, text=True, timeout=600)  # fmt: skip
     assert again.returncode == 0, again.stderr[-2000:]
     assert f"continuing {run}" in again.stdout
     record = json.loads((run / "metrics.json").read_text())
     assert record["dataset"] == str(sequences[1].resolve()) and record["target"] == "classical"
+    assert {k: record[k] for k in kept} == checked  # the check of the starting net, kept
     rows = list(csv.DictReader((run / "csv" / "metrics.csv").open()))
     assert {r["epoch"] for r in rows if r.get("val/loss")} == {"0", "1"}
 

@@ -72,7 +72,7 @@ def _one_line_error(done) -> str:
         (["model=nosuch"], "error: model=nosuch: no such model; choose one of hnet, mtlnet,"),
         (["trainer.max_epochz=3"], "did you mean trainer.max_epochs?"),
         (["+out=x"], "error: out: not a setting of this app"),
-        (["trainer.max_epochs=0"], "error: trainer.max_epochs: 0; at least 1"),
+        (["trainer.max_epochs=0"], "error: trainer.max_epochs=0: at least 1"),
         (["model.net.base_width=0"], "error: model.net.base_width: 0; a positive channel count"),
     ],
 )
@@ -85,7 +85,7 @@ def test_a_wrong_key_is_one_line_naming_it(args, expected, tiny_dataset, tmp_pat
 
 def test_simulate_refuses_no_scenes(tmp_path):
     line = _one_line_error(_app("simulate", "scenes=0", "out=ds", cwd=tmp_path))
-    assert line == "error: scenes: 0; render at least one scene"
+    assert line == "error: scenes=0: render at least one scene"
     assert not (tmp_path / "ds").exists()
 
 

@@ -129,11 +129,11 @@ def test_a_runs_record_names_its_files_so_another_machine_finds_them(
     assert ckpt == moved / record["best_checkpoint"] and ckpt.is_file()
     dataset = Path(metrics["dataset"])
     monkeypatch.chdir(dataset.parent)
-    assert portable(dataset) == dataset.name and recorded_dataset({"dataset": dataset.name})
+    assert portable(dataset) == dataset.name and recorded_dataset({"dataset": dataset.name}, moved)
     monkeypatch.chdir(tmp_path)
     (tmp_path / "data").mkdir()
     (tmp_path / "data" / dataset.name).symlink_to(dataset)
-    found = recorded_dataset({"dataset": f"/another/machine/data/{dataset.name}"})
+    found = recorded_dataset({"dataset": f"/another/machine/data/{dataset.name}"}, moved)
     assert found == Path("data") / dataset.name and (found / "manifest.json").is_file()
 
 

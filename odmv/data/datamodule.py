@@ -253,6 +253,28 @@ class FPPDataModule(L.LightningDataModule):
             )
         self.manifest = m
 
+    def check_splits(self, test: bool) -> None:
+        """Refuse, before the first epoch, a split the run needs that the dataset leaves
+        empty: training needs train scenes, and a run that tests needs test scenes. (A
+        synthetic dataset not rendered yet is checked when it is read.)"""
+        if self.manifest is None:
+            if not (self.root / MANIFEST).is_file():
+                return
+            self._read_manifest()
+        for name in ("train", "test") if test else ("train",):
+            if not self.splits[name]:
+                sizes = ", ".join(f"{k} {len(v)}" for k, v in self.splits.items())
+                labelled = all(sc.get("split") in SPLITS for sc in self.manifest.scenes)
+                fix = (
+                    f"its manifest labels no scene {name}"
+                    if labelled
+                    else "render more scenes or change data.split_fractions"
+                )
+                raise DataError(
+                    f"{self.root}: no {name} scenes ({sizes}); {fix}"
+                    + (", or train with test=false" if name == "test" else "")
+                )
+
     def mean_depth_mm(self, split: str = "train") -> float | None:
         """Mean ground-truth depth (mm) of a split at the network's size, from the depth maps
         alone: the constant predictor's value, without decoding the split's fringes (None for

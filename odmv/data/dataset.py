@@ -22,7 +22,7 @@ from odmv.data.reference import network_input, reference_mode, reference_phase
 from odmv.data.subsets import MASKS, footprint_from_depth, subset_masks
 from odmv.data.views import with_availability
 from odmv.io.exr import ExrError, read_exr
-from odmv.io.images import NO_INTENSITY_BELOW
+from odmv.io.images import NO_INTENSITY_BELOW, fringe_problem
 from odmv.io.manifest import (
     DEPTH_CHANNEL,
     DEPTH_FILE,
@@ -88,7 +88,7 @@ def check_spec(
     missing = [v for v in views if v not in m.views]
     if missing:
         raise DataError(f"views: {missing} not in dataset {m.root} (it has {list(m.views)})")
-    h, w = size_hw(resolution)
+    h, w = size_hw(resolution, "data.resolution")
     if h % 16 or w % 16 or h <= 0 or w <= 0:
         raise DataError(f"data.resolution: {h}x{w} must be positive multiples of 16")
     f = m.fringe.train_frequency if frequency is None else frequency
@@ -219,9 +219,13 @@ def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]
     d = m.scene_dir(sid)
     shape = (m.height_px, m.width_px)
     fd = d / FRINGE_DIR
-    fringes = np.stack(
-        [_fringe(fd / fringe_name(v, spec.frequency, spec.step), shape) for v in spec.views]
-    )
+    paths = [fd / fringe_name(v, spec.frequency, spec.step) for v in spec.views]
+    fringes = np.stack([_fringe(p, shape) for p in paths])
+    for path, view, image in zip(paths, spec.views, fringes, strict=True):
+        # the net's image must hold a fringe: training on a black one teaches nothing
+        problem = None if view in m.dark_views() else fringe_problem(path, image)
+        if problem:
+            raise DataError(f"{problem}; python -m odmv.validate {m.root} checks every image")
     h, w = spec.height_px, spec.width_px
     if not spec.labels:
         return {"fringes": _resize(fringes, h, w, "area")}

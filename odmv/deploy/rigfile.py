@@ -27,6 +27,7 @@ def export_rig(ckpt_path: str | Path, out_dir: str | Path, calibration=None) -> 
         if root and (Path(root) / MANIFEST).is_file():
             rig, which = load_manifest(root).rig, f"the run's dataset {root}"
         else:
-            rig, which = Rig(), "the paper's default rig (give calibration=FILE for yours)"
+            missing = f"; the run's dataset {root} is not here" if root else ""
+            rig, which = Rig(), f"the paper's default rig{missing} (give calibration=FILE)"
     arrays = module_predictor(module).rig_inputs(rig)
     return write_npz(Path(out_dir) / RIG_FILE, arrays), which

@@ -15,7 +15,9 @@ import glob
 import json
 import os
 import shutil
-from collections.abc import Callable
+import signal
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -138,3 +140,32 @@ def write_csv(path: str | os.PathLike, rows: list[dict]) -> Path:
             w.writerows(rows)
 
     return write_atomic(path, write)
+
+
+@contextmanager
+def staged(folder: str | os.PathLike, owned: tuple[str, ...]) -> Iterator[Path]:
+    """Files that belong together (a graph and the rig file it reads), written into a hidden
+    folder beside ``folder`` and moved into it only when all are written, with Ctrl-C and
+    SIGTERM held back meanwhile: an interruption or a failure leaves ``folder`` as it was, and
+    a finished set never sits beside the rest of an older one (files named in ``owned`` that
+    the new set lacks are removed)."""
+    folder = Path(folder)
+    folder.absolute().parent.mkdir(parents=True, exist_ok=True)
+    remove_abandoned(folder)
+    stage = temporary(folder)
+    stage.mkdir()
+    try:
+        yield stage
+        held = {signal.SIGINT, signal.SIGTERM}
+        signal.pthread_sigmask(signal.SIG_BLOCK, held)
+        try:
+            folder.mkdir(exist_ok=True)
+            for name in owned:
+                if not (stage / name).exists():
+                    (folder / name).unlink(missing_ok=True)
+            for path in stage.iterdir():
+                os.replace(path, folder / path.name)
+        finally:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, held)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)

@@ -130,13 +130,18 @@ def intensity_problem(
             f"{path}: {share:.1%} of the intensities lie above 1.5 times full scale (range "
             f"[{lo:.3g}, {hi:.3g}]); {bright}"
         )
-    if fringe:
-        low, high = (float(x) for x in np.percentile(a, [1, 99]))
-        if high < DARK_LEVEL or high - low < MIN_FRINGE_CONTRAST * high:
-            return (
-                f"{path}: no fringe (1-99 % intensities {low:.3f}-{high:.3f} of full scale): a "
-                "uniform, black or saturated image where the projector's fringe belongs"
-            )
+    return fringe_problem(path, a) if fringe else None
+
+
+def fringe_problem(path, a: np.ndarray) -> str | None:
+    """The line saying an image where a projector's fringe belongs holds none (black, one grey
+    level or saturated: MIN_FRINGE_CONTRAST, DARK_LEVEL), or None."""
+    low, high = (float(x) for x in np.percentile(a, [1, 99]))
+    if high < DARK_LEVEL or high - low < MIN_FRINGE_CONTRAST * high:
+        return (
+            f"{path}: no fringe (1-99 % intensities {low:.3f}-{high:.3f} of full scale): a "
+            "uniform, black or saturated image where the projector's fringe belongs"
+        )
     return None
 
 

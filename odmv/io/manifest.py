@@ -11,6 +11,8 @@ import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from odmv.io.atomic import write_json
 from odmv.io.calibration import CalibratedRig, CalibrationError, parse_calibration
 from odmv.rig import VIEW_NAMES, Rig
@@ -102,6 +104,12 @@ class Manifest:
         or ``height`` (above the reference plane, mm; e.g. the uhrnet format's)."""
         return "height" if self.extra.get("quantity") == HEIGHT_QUANTITY else "depth"
 
+    def dark_views(self) -> set[str]:
+        """Views rendered without their projector's light on purpose (a robustness shift's
+        dead projector), whose images hold no fringe by design."""
+        shift = self.extra.get("simulation", {}).get("shift") or {}
+        return {shift["strength"]} if shift.get("name") == "dead_view" else set()
+
     def scene_dir(self, scene_id: str) -> Path:
         return self.root / "scenes" / scene_id
 
@@ -183,6 +191,38 @@ def _rig_of(entry, known: bool, path: Path) -> Rig | CalibratedRig | None:
         return Rig.from_dict(entry.get("spec", {}))
     except TypeError as exc:
         raise ManifestError(f"{path}: bad rig specification ({exc})") from None
+    except ValueError as exc:
+        raise ManifestError(f"{path}: rig.spec.{exc}") from None
+
+
+def _check_geometry(stored, derived: dict, path: Path, where: str = "rig.geometry") -> None:
+    """The manifest's ``rig.geometry`` is written from its ``rig.spec`` (or calibration) for
+    readers of the file; the project reads the spec. An edited geometry would be silently
+    ignored, so one that differs from the spec's is refused, naming the first entry."""
+    if stored is None:
+        return
+    if isinstance(derived, dict):
+        if not isinstance(stored, dict):
+            raise ManifestError(f"{path}: {where} should be an object")
+        for key, value in derived.items():
+            if key in stored:
+                _check_geometry(stored[key], value, path, f"{where}.{key}")
+        return
+    if isinstance(derived, str):
+        if stored != derived:
+            raise ManifestError(f"{path}: {where} is {stored!r}, the rig gives {derived!r}")
+        return
+    try:
+        same = np.allclose(
+            np.asarray(stored, float), np.asarray(derived, float), rtol=1e-6, atol=1e-9
+        )
+    except (TypeError, ValueError):
+        same = False
+    if not same:
+        raise ManifestError(
+            f"{path}: {where} is {stored}, but the rig gives {derived}: the geometry is "
+            "written from rig.spec (or rig.calibration) and never read; edit that instead"
+        )
 
 
 def load_manifest(root: str | os.PathLike) -> Manifest:
@@ -232,6 +272,8 @@ def load_manifest(root: str | os.PathLike) -> Manifest:
     if "rig" not in d:
         raise ManifestError(f"{path}: missing key 'rig'")
     rig = _rig_of(d["rig"], d.get("rig_known", True), path)
+    if rig is not None:
+        _check_geometry(d["rig"].get("geometry"), rig.geometry(w, h), path)
     scenes = _require(d, "scenes", list, path)
     seen = set()
     for i, s in enumerate(scenes):

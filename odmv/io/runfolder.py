@@ -20,6 +20,7 @@ CONFIG = ".hydra/config.yaml"
 ROBUSTNESS = "robustness.json"
 LOCK = "run.lock"  # the pid of the training writing into the folder
 FAILED = "failed.txt"  # a failed training's error, beside what it wrote
+CALIBRATION_CHECK = "calibration_check.json"  # a fine-tune's check of its starting net
 PRIOR = "prior.json"  # the prior probe (odmv.study.prior): MAE with the scene moved
 
 #: where a checkout keeps its datasets (conf/paths/default.yaml's data_dir)
@@ -46,13 +47,18 @@ def portable_record(metrics: dict, run: Path) -> dict:
     return out
 
 
-def recorded_dataset(metrics: dict) -> Path:
-    """The dataset a record names: where it says (a relative path: below the working
-    directory), else, for a record written on another machine, the folder of that name in
-    this checkout's ``data/``; the recorded path if neither is there (its reader says so)."""
+def recorded_dataset(metrics: dict, run: Path) -> Path:
+    """The dataset the record of ``run`` names: where it says; a relative path is relative to
+    the folder the run was started in, so below the working directory or below one of the
+    run folder's parents (a page made from elsewhere); else, for a record written on another
+    machine, the folder of that name in this checkout's ``data/``; the recorded path if none is
+    there (its reader says so)."""
     path = Path(metrics["dataset"])
     if path.is_dir():
         return path
+    for base in [] if path.is_absolute() else Path(run).resolve().parents:
+        if (base / path).is_dir():
+            return base / path
     here = Path(DATA_DIR) / path.name
     return here if here.is_dir() else path
 

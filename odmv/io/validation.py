@@ -10,12 +10,13 @@ from pathlib import Path
 import numpy as np
 
 from odmv.io import exr
-from odmv.io.images import intensity_problem
+from odmv.io.images import fringe_problem, intensity_problem
 from odmv.io.manifest import (
     DEPTH_CHANNEL,
     DEPTH_FILE,
     FOOTPRINT_FILE,
     FRINGE_CHANNEL,
+    FRINGE_DIR,
     LIT_FILE,
     PROJ_COORD_FILE,
     SCENE_SPEC_FILE,
@@ -44,11 +45,24 @@ class Report:
         return line
 
 
+def _holds_fringe(path: Path, m: Manifest) -> bool:
+    """Whether ``path`` is a phase-shifted image whose projector lights the scene (not a
+    uniform image, nor one of a view the manifest declares dark)."""
+    view, _, rest = path.name.partition("_")
+    return path.parent.name == FRINGE_DIR and rest[:1] == "f" and view not in m.dark_views()
+
+
 def _check_image(
-    path: Path, channels: list[str], shape: tuple[int, int], deep: bool, nan_depth: bool = False
+    path: Path,
+    channels: list[str],
+    shape: tuple[int, int],
+    deep: bool,
+    nan_depth: bool = False,
+    fringe: bool = False,
 ) -> str | None:
     """Return a problem line, or None. ``deep`` decodes the pixels too; ``nan_depth``: the
-    manifest declares NaN depth for pixels without ground truth."""
+    manifest declares NaN depth for pixels without ground truth; ``fringe``: the image must
+    hold a fringe (odmv.io.images.fringe_problem)."""
     try:
         found = exr.exr_channels(path)
         missing = [c for c in channels if c not in found]
@@ -59,7 +73,9 @@ def _check_image(
             return f"{path}: channel shape(s) {bad} differ from the manifest's {shape}"
         if deep:
             data = exr.read_exr(path, channels)
-            return _check_values(path, data, nan_depth)
+            return _check_values(path, data, nan_depth) or (
+                fringe_problem(path, data[FRINGE_CHANNEL]) if fringe else None
+            )
     except exr.ExrError as e:
         return str(e)
     return None
@@ -136,7 +152,8 @@ def validate(root: str | Path, deep: bool = True, scene_ids: list[str] | None = 
                 checks.append((sdir / FOOTPRINT_FILE, views))
         nan_depth = bool(m.extra.get("invalid_depth"))
         for path, channels in checks:
-            problem = _check_image(path, channels, shape, deep, nan_depth)
+            fringe = _holds_fringe(path, m)
+            problem = _check_image(path, channels, shape, deep, nan_depth, fringe)
             if problem:
                 report.problems.append(problem)
         if deep and report.labelled and not any(p.startswith(str(sdir)) for p in report.problems):

@@ -160,7 +160,7 @@ def _provenance(runs: list[Run]) -> list[tuple[str, str]]:
 
 def _dataset(runs: list[Run]) -> Path | None:
     named = [r for r in runs if r.metrics.get("dataset")]
-    return recorded_dataset(named[0].metrics) if named else None
+    return recorded_dataset(named[0].metrics, named[0].folder) if named else None
 
 
 # ----------------------------------------------------------------------------- folder kinds

@@ -11,7 +11,6 @@ import json
 import os
 import shutil
 import signal
-import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
@@ -40,7 +39,8 @@ from odmv.io.manifest import (
     Manifest,
     load_manifest,
 )
-from odmv.rig import Rig, check_views, size_hw
+from odmv.io.processes import die_with_parent
+from odmv.rig import Rig, check_views, size_hw, whole_number
 from odmv.sim.pose import PoseSettings
 from odmv.sim.render import RenderConfig, Rendered, render_scene
 from odmv.sim.scenes import Scene, build_scene, choose_family, draw_spec, mesh_files_in
@@ -90,9 +90,10 @@ class SimSettings:
         res = c.get("resolution")
         if res is not None:
             kw["height_px"], kw["width_px"] = size_hw(res)
-        for key in ("scenes", "seed"):
+        lows = {"scenes": (1, "render at least one scene"), "seed": (0, "0 or more")}
+        for key, (low, what) in lows.items():
             if key in c:
-                kw[key] = int(c[key])
+                kw[key] = whole_number(c[key], key, low, what)
         for key in ("family", "images", "mesh_dir", "splits", "compression", "fringe_dtype"):
             if key in c:
                 kw[key] = c[key]
@@ -313,22 +314,24 @@ def _environment(values: dict[str, str]):
             os.environ.pop(key, None)
 
 
+@contextmanager
+def _stops_ignored():
+    """Processes started within ignore Ctrl-C and SIGTERM from birth (a disposition that
+    survives exec, so it holds while a spawned worker still imports): a stop reaches the
+    parent, which lets them finish their scene and then ends; had they died of it, each would
+    print a traceback and the pool a third. A killed parent takes them along (die_with_parent)."""
+    stops = (signal.SIGINT, signal.SIGTERM)
+    before = [signal.signal(sig, signal.SIG_IGN) for sig in stops]
+    try:
+        yield
+    finally:
+        for sig, handler in zip(stops, before, strict=True):
+            signal.signal(sig, handler)
+
+
 def _worker_init(parent: int | None = None):
     OpenEXR.set_global_thread_count(0)
     die_with_parent(parent)
-
-
-def die_with_parent(parent: int | None) -> None:
-    """Have the kernel kill this worker when its parent dies (a killed ``simulate`` would
-    otherwise leave workers rendering on, then waiting forever for a queue nobody reads)."""
-    if sys.platform != "linux" or parent is None:
-        return
-    import ctypes
-
-    pr_set_pdeathsig = 1
-    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL)
-    if os.getppid() != parent:  # the parent died before the request took effect
-        os._exit(1)
 
 
 def scene_record(m: Manifest, sid: str) -> dict:
@@ -408,11 +411,16 @@ def simulate(
 ) -> SimReport:
     """Render every missing scene of the dataset described by ``s`` (resumable); with
     ``shard=(i, n)`` only scenes i, i + n, i + 2n, ... (odmv.sim.shards joins the shards)."""
-    s.views = check_views(s.views)
+    try:
+        s.views = check_views(s.views)
+    except ValueError as e:
+        raise SimulationError(f"views: {e}") from None
     if s.images not in ("full", "training"):
         raise SimulationError(f"images={s.images!r}: use 'full' or 'training'")
-    if s.height_px % 16 or s.width_px % 16:
-        raise SimulationError(f"resolution {s.height_px}x{s.width_px}: use multiples of 16")
+    if s.height_px < 16 or s.width_px < 16 or s.height_px % 16 or s.width_px % 16:
+        raise SimulationError(
+            f"resolution={s.height_px}x{s.width_px}: use positive multiples of 16 (px)"
+        )
     if s.scenes < 1:
         raise SimulationError(f"scenes: {s.scenes}; render at least one scene")
     if s.subset is not None and not all(0 <= i < s.scenes for i in s.subset):
@@ -465,14 +473,17 @@ def simulate(
                 bar.advance(task)
         else:
             ctx = get_context("spawn")
-            with (
-                _environment(_SINGLE_THREAD_ENV),
-                ProcessPoolExecutor(
+            with _environment(_SINGLE_THREAD_ENV):
+                pool = ProcessPoolExecutor(
                     workers, ctx, initializer=_worker_init, initargs=(os.getpid(),)
-                ) as pool,
-            ):
-                for _ in pool.map(_worker, [(s, i, specs[i]) for i in todo]):
+                )
+            try:
+                with _stops_ignored():  # the workers are spawned by map's submissions
+                    done = pool.map(_worker, [(s, i, specs[i]) for i in todo])
+                for _ in done:
                     bar.advance(task)
+            finally:  # stopped: the scenes in progress finish, the rest are never started
+                pool.shutdown(wait=True, cancel_futures=True)
     seconds = time.perf_counter() - t0
     rendered = len(mine) - skipped
     per_scene = len(manifest.fringe_files(scene_id(0)))

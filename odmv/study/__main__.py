@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib
 import sys
 
+from odmv.cli import run_app
 from odmv.study import VERBS
 
 
@@ -34,7 +35,8 @@ def main(argv: list[str]) -> int:
         )
         return 2
     sys.argv[0] = f"python -m odmv.study {verb}"  # argparse's usage line names the verb
-    return importlib.import_module(f"odmv.study.{VERBS[verb]}").main(rest) or 0
+    module = importlib.import_module(f"odmv.study.{VERBS[verb]}")
+    return run_app(lambda: module.main(rest)) or 0  # its faults in one line, as every app
 
 
 if __name__ == "__main__":

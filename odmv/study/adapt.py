@@ -22,10 +22,10 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
 from pathlib import Path
 
 from odmv.io.atomic import write_csv, write_json, write_text
+from odmv.io.processes import run_child
 from odmv.io.runfolder import METRICS, portable, recorded_dataset
 from odmv.sim.shifts import NOMINAL_SHIFT, Shift, parse_shift
 from odmv.study.heldout import evaluate_on, source_seed, twin_dataset, twin_settings
@@ -74,7 +74,7 @@ def fine_tune(
     with (folder / "train.out").open("w") as log:
         log.write(" ".join(cmd) + "\n")
         log.flush()
-        proc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, check=False)
+        proc = run_child(cmd, log)
     if (folder / METRICS).is_file():
         return json.loads((folder / METRICS).read_text())
     last = (folder / "train.out").read_text().strip().splitlines()[-1]
@@ -108,7 +108,7 @@ def measure(cfg, runs_dir: Path, out: Path, threads, train: list[str]) -> list[d
     variants = {k: list(v or []) for k, v in (cfg.get("variants") or {"adapted": []}).items()}
     rows = []
     for base in bases:
-        source = recorded_dataset(json.loads((base / METRICS).read_text()))
+        source = recorded_dataset(json.loads((base / METRICS).read_text()), base)
         nominal = shifted_set(source, NOMINAL_SHIFT, cfg.test_scenes, classical=False)
         base_nominal = _score(scores, path, f"{base.name}|nominal", base, nominal, threads)
         for shift in (parse_shift(s) for s in cfg.shifts):

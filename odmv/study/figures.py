@@ -105,9 +105,8 @@ def comparison_figures(
         lo, hi = float(np.nanmin(gt)), float(np.nanmax(gt))
         n = len(preds)
         recorded = ref_run.metrics.get("dataset")
-        inputs = (
-            _fringes(str(recorded_dataset(ref_run.metrics)), sid, gt.shape) if recorded else None
-        )
+        dataset = recorded_dataset(ref_run.metrics, ref_run.folder) if recorded else None
+        inputs = _fringes(str(dataset), sid, gt.shape) if dataset else None
         cols = max(n, 5)
         # constrained layout: the colour bars take a column of their own, so every panel is
         # the same size

@@ -90,8 +90,6 @@ def main(argv: list[str]) -> None:
     rows, share, groups = [], None, []
     for group in args.groups:
         label, folders = run_groups(group, args.file)
-        if not folders:
-            raise SystemExit(f"error: {group}: no finished runs (no {args.file})")
         runs = [load_predictions(f, args.file) for f in folders]
         groups.append((label, runs))
         results = [band_errors(pred, depth, BANDS_MM) for _, pred, depth in runs]

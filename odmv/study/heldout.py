@@ -151,7 +151,9 @@ def score_heldout(run: Path, threads: int | None = None, scenes: int = SCENES) -
     (rendered on first use) and write the metrics to ``run/heldout.json``; returns them.
     ``threads``: torch's intra-op thread count for the evaluation (None: torch's default)."""
     _, metrics = best_checkpoint(run)
-    held = evaluate_on(run, heldout_dataset(recorded_dataset(metrics), scenes), threads, "heldout")
+    held = evaluate_on(
+        run, heldout_dataset(recorded_dataset(metrics, run), scenes), threads, "heldout"
+    )
     write_json(run / HELDOUT, held)
     return held
 

@@ -93,7 +93,7 @@ def probe_run(run: Path, plan: list[dict], threads: int | None, classical: bool,
     """Score ``run`` (and, once per dataset and move, the classical method) on every move."""
     module, dm = run_data(run, "test")
     ids = list(dm.splits["test"])
-    source = recorded_dataset(json.loads((run / METRICS).read_text()))
+    source = recorded_dataset(json.loads((run / METRICS).read_text()), run)
     res = module.hparams.data_cfg.get("resolution")
     net_rows, cl_rows = [], []
     for mv in plan:

@@ -32,8 +32,13 @@ def checkpoint_data(path: Path, stage: str | None, views: list[str] | None = Non
 
 def run_groups(arg: str, marker: str) -> tuple[str, list[Path]]:
     """``LABEL=GLOB`` as the label and the matched run folders that hold ``marker``."""
+    if "=" not in arg:
+        raise ValueError(f"{arg}: give LABEL=GLOB, e.g. 'S=4=outputs/sweep/*views=4*'")
     label, pattern = arg.rsplit("=", 1)  # labels may hold "=" (S=4), globs do not
-    return label, sorted(Path(p) for p in glob.glob(pattern) if (Path(p) / marker).is_file())
+    found = sorted(Path(p) for p in glob.glob(pattern) if (Path(p) / marker).is_file())
+    if not found:
+        raise ValueError(f"{arg}: no run folder matches {pattern} (holding {marker})")
+    return label, found
 
 
 def load_predictions(folder: Path, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from odmv.io.atomic import write_csv, write_text
-from odmv.io.runfolder import portable
+from odmv.io.runfolder import FAILED, portable
 from odmv.study.captures import report_section
 from odmv.study.claims import claims_markdown
 from odmv.study.figures import FIGURE_SCENES, bar_chart, comparison_figures
@@ -270,7 +270,10 @@ def write_report(
         lines.append("")
     if pending:
         lines += ["### Unfinished runs (not counted)", ""]
-        lines += [f"- `{portable(p)}`" for p in pending]
+        lines += [
+            f"- `{portable(p)}`" + (f" (failed: {FAILED})" if (p / FAILED).is_file() else "")
+            for p in pending
+        ]
         lines.append("")
     lines += ["### Every run", "", "See `runs.csv` (one line per run and seed)."]
     write_csv(

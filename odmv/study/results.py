@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from odmv.io.runfolder import HELDOUT
+from odmv.io.runfolder import FAILED, HELDOUT, LOCK
 from odmv.io.runfolder import METRICS as METRICS_JSON
 from odmv.study.tables import Row
 from odmv.study.tables import tables as declared
@@ -83,9 +83,14 @@ class Cell:
         return float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else np.nan
 
 
+#: what a training leaves in its folder before its metrics: a log, checkpoints, the lock a
+#: killed run leaves, the error of a failed one
+STARTED = ("train.log", "checkpoints", LOCK, FAILED)
+
+
 def find_runs(paths: list[Path]) -> tuple[list[Run], list[Path]]:
-    """Finished runs (folders with metrics.json) and unfinished ones (a training log, no
-    metrics yet) below ``paths``."""
+    """Finished runs (folders with metrics.json) and unfinished ones (started, failed or
+    killed: STARTED, no metrics) below ``paths``."""
     runs, pending = [], []
     for p in paths:
         if not p.is_dir():
@@ -100,9 +105,10 @@ def find_runs(paths: list[Path]) -> tuple[list[Run], list[Path]]:
             if "test/mae_mm" not in metrics or "model" not in metrics:
                 raise ReportError(f"{folder / METRICS_JSON}: not a test result of odmv.train")
             runs.append(Run(folder, metrics | _heldout(folder)))
-        for log in p.rglob("train.log"):
-            if not (log.parent / METRICS_JSON).is_file():
-                pending.append(log.parent)
+        for name in STARTED:
+            for mark in p.rglob(name):
+                if not (mark.parent / METRICS_JSON).is_file():
+                    pending.append(mark.parent)
     return runs, sorted(set(pending))
 
 

@@ -85,7 +85,7 @@ def score_run(
     path = run / ROBUSTNESS
     scores = json.loads(path.read_text()) if path.is_file() else {}
     record = json.loads((run / METRICS).read_text())
-    source = recorded_dataset(record)
+    source = recorded_dataset(record, run)
     sets = [(shift.label(), shift, ()) for shift in [NOMINAL_SHIFT, *shifts]]
     if _setting(run, "view_dropout"):
         sets += [
@@ -163,7 +163,7 @@ def score_classical(
 
 
 def _dataset(run: Path) -> Path:
-    return recorded_dataset(json.loads((run / METRICS).read_text()))
+    return recorded_dataset(json.loads((run / METRICS).read_text()), run)
 
 
 def _label(run: Path, metrics: dict) -> str:

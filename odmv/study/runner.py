@@ -12,7 +12,6 @@ import itertools
 import json
 import shlex
 import shutil
-import subprocess
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +25,7 @@ from odmv.classical.row import CAPTURES, classical_row
 from odmv.cli import task_overrides
 from odmv.config import compose_train
 from odmv.io.atomic import write_json, write_text
+from odmv.io.processes import run_child
 from odmv.io.runfolder import CONFIG, HELDOUT, METRICS, PREDICTIONS, PRIOR, ROBUSTNESS, SCENES_CSV
 from odmv.sim.shifts import parse_shift
 from odmv.study.adapt import run_adaptation
@@ -280,7 +280,7 @@ def _train(job: Job, protocol: str, extra: list[str], train: list[str]) -> dict:
     with tmp.open("a") as log:
         log.write(" ".join(cmd) + "\n")
         log.flush()
-        proc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, check=False)
+        proc = run_child(cmd, log)
     if job.folder.is_dir():
         tmp.replace(job.folder / "train.out")
     if proc.returncode != 0 or not (job.folder / METRICS).is_file():

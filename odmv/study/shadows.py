@@ -54,6 +54,7 @@ def main(argv: list[str]) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("groups", nargs="+", metavar="LABEL=GLOB")
     args = ap.parse_args(argv)
+    groups = [run_groups(group, PREDICTIONS) for group in args.groups]  # each found, or refused
     bands = [
         f"{lo:g}-{hi:g} mm" if np.isfinite(hi) else f"> {lo:g} mm"
         for lo, hi in zip(BANDS_MM[:-1], BANDS_MM[1:], strict=True)
@@ -62,10 +63,7 @@ def main(argv: list[str]) -> None:
     print("| MAE (mm) on shadowed pixels | runs | " + " | ".join(cols) + " |")
     print("|---|---:|" + "---:|" * len(cols))
     masks: dict[str, dict] = {}  # per dataset: one test split's masks
-    for group in args.groups:
-        label, folders = run_groups(group, PREDICTIONS)
-        if not folders:
-            raise SystemExit(f"error: {group}: no finished runs (no test_predictions.npz)")
+    for label, folders in groups:
         rows = []
         for f in folders:
             dataset = json.loads((f / METRICS).read_text())["dataset"]

@@ -104,10 +104,19 @@ def check_calibration(
     spread = view_spread_mm(offsets)
     if spread is not None and spread > stale_mm:
         per_view = ", ".join(f"{v} {x:+.3f}" for v, x in offsets.items())
+        cause = (
+            "the calibration no longer describes the rig (a projector moved?); recalibrate and "
+            "convert the captures again"
+            if source == "classical"
+            else "either the calibration no longer describes the rig (a projector moved?), or "
+            "the net cannot tell (a weakly trained net's views disagree by themselves); the "
+            "captured sequences tell the two apart, as their check measures each projector "
+            "without the net (convert format=sequences, then adapt): recalibrate if they "
+            "disagree too, else train the net further"
+        )
         raise StaleCalibrationError(
             f"{where}: the views disagree on the depth ({CHECK_SOURCES[source]}: {per_view} "
-            f"mm; spread {spread:.3f} mm > adaptation.stale_mm={stale_mm}): the calibration no "
-            "longer describes the rig (a projector moved?); recalibrate and convert the captures "
-            "again, or adaptation.check_calibration=false to adapt anyway"
+            f"mm; spread {spread:.3f} mm > adaptation.stale_mm={stale_mm}): {cause}; or "
+            "adaptation.check_calibration=false to adapt anyway"
         )
     return spread
