@@ -90,3 +90,34 @@ def calibration_of(rig, size):
         "reference_plane_mm": float(cam.center[2]),
         "projectors": projectors,
     }
+
+
+def run_app(name, *args, cwd):
+    """``python -m odmv.<name> ARGS`` in ``cwd`` as a user runs it (no HYDRA_FULL_ERROR)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    return subprocess.run(
+        [sys.executable, "-m", f"odmv.{name}", *args],
+        cwd=cwd, capture_output=True, text=True, env=env,
+    )  # fmt: skip
+
+
+def one_line_error(done) -> str:
+    """The app's error, asserted to be one line and exit status 2."""
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert len(lines) == 1 and lines[0].startswith("error: "), done.stderr[-2000:]
+    return lines[0]
+
+
+def zombie(pid: int) -> bool:
+    """Whether process ``pid`` is gone or only awaits its parent's wait (Linux /proc)."""
+    from pathlib import Path
+
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True

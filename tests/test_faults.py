@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from helpers import compose_config, tiny_overrides
+from helpers import compose_config, one_line_error, run_app, tiny_overrides, zombie
 
 from odmv.io.exr import read_channel, write_exr
 
@@ -50,21 +50,6 @@ def read_only_disk(tmp_path):
         yield disk
 
 
-def _app(name, *args, cwd):
-    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
-    return subprocess.run(
-        [PY, "-m", f"odmv.{name}", *args], cwd=cwd, capture_output=True, text=True, env=env
-    )
-
-
-def _one_line_error(done) -> str:
-    """The app's error, asserted to be one line and exit status 2."""
-    lines = done.stderr.strip().splitlines()
-    assert done.returncode == 2, done.stderr[-2000:]
-    assert len(lines) == 1 and lines[0].startswith("error: "), done.stderr[-2000:]
-    return lines[0]
-
-
 # ---------------------------------------------------------------- Hydra's and the apps' keys
 @pytest.mark.parametrize(
     "args, expected",
@@ -78,13 +63,13 @@ def _one_line_error(done) -> str:
 )
 def test_a_wrong_key_is_one_line_naming_it(args, expected, tiny_dataset, tmp_path):
     extra = [a for a in tiny_overrides(tiny_dataset, tmp_path / "run") if "base_width" not in a]
-    line = _one_line_error(_app("train", *extra, *args, cwd=tmp_path))
+    line = one_line_error(run_app("train", *extra, *args, cwd=tmp_path))
     assert expected in line
     assert not (tmp_path / "run").exists()  # nothing left behind
 
 
 def test_simulate_refuses_no_scenes(tmp_path):
-    line = _one_line_error(_app("simulate", "scenes=0", "out=ds", cwd=tmp_path))
+    line = one_line_error(run_app("simulate", "scenes=0", "out=ds", cwd=tmp_path))
     assert line == "error: scenes=0: render at least one scene"
     assert not (tmp_path / "ds").exists()
 
@@ -164,10 +149,10 @@ def test_abandoned_temporary_files_are_removed_by_the_next_write(tmp_path):
 
 def test_simulate_on_a_full_or_read_only_disk_is_one_line(small_disk, read_only_disk, tmp_path):
     args = ["scenes=2", "resolution=64", "workers=1", "progress=false"]
-    line = _one_line_error(_app("simulate", f"out={small_disk}/ds", *args, cwd=tmp_path))
+    line = one_line_error(run_app("simulate", f"out={small_disk}/ds", *args, cwd=tmp_path))
     assert "are free there" in line or "no space left" in line  # said before or as it ran out
     assert not list((small_disk / "ds" / "scenes").glob("*"))  # no half-written scene
-    line = _one_line_error(_app("simulate", f"out={read_only_disk}/ds", *args, cwd=tmp_path))
+    line = one_line_error(run_app("simulate", f"out={read_only_disk}/ds", *args, cwd=tmp_path))
     assert line.startswith(f"error: {read_only_disk}/ds") and "read-only file system" in line
 
 
@@ -331,7 +316,7 @@ def test_a_refused_second_run_leaves_the_running_runs_folder_as_it_was(tiny_data
         (running / "run.lock").write_text(f"{holder.pid}\n")
         before = {p: p.read_bytes() for p in running.rglob("*") if p.is_file()}
         args = [*tiny_overrides(tiny_dataset, running), "hydra.run.dir=hydra"]
-        line = _one_line_error(_app("train", *args, cwd=tmp_path))
+        line = one_line_error(run_app("train", *args, cwd=tmp_path))
         assert f"another run (pid {holder.pid}) is writing into it" in line
         assert {p: p.read_bytes() for p in running.rglob("*") if p.is_file()} == before
         assert not (tmp_path / "hydra").exists()  # the refused run's own folder is gone
@@ -350,12 +335,12 @@ def test_ckpt_path_never_trains_a_finished_run_again_nor_writes_elsewhere(
     new = tmp_path / "new"
     last = finished / "checkpoints" / "last.ckpt"
     args = [*tiny_overrides(tiny_dataset, new), f"ckpt_path={last}", "hydra.run.dir=hydra"]
-    line = _one_line_error(_app("train", *args, cwd=tmp_path))
+    line = one_line_error(run_app("train", *args, cwd=tmp_path))
     assert "holds a finished run" in line and f"init_from={finished}" in line
     assert {p: p.read_bytes() for p in finished.rglob("*") if p.is_file()} == before
     assert not new.exists() and not (tmp_path / "hydra").exists()
     (finished / "metrics.json").unlink()  # an interrupted run: continued in its own folder only
-    line = _one_line_error(_app("train", *args, cwd=tmp_path))
+    line = one_line_error(run_app("train", *args, cwd=tmp_path))
     assert f"continues the run in {finished}" in line and f"resume={finished}" in line
     assert not new.exists() and not (finished / "failed.txt").exists()
 
@@ -365,11 +350,11 @@ def test_a_failed_run_leaves_no_empty_folder_and_a_corrected_rerun_gets_its_own_
 ):
     out = tmp_path / "run"
     args = [*tiny_overrides(tiny_dataset, out), "hydra.run.dir=hydra"]
-    _one_line_error(_app("train", *args, "data.fringe_frequency=7", cwd=tmp_path))
+    one_line_error(run_app("train", *args, "data.fringe_frequency=7", cwd=tmp_path))
     assert not out.exists() and not (tmp_path / "hydra").exists()
     (out / ".hydra").mkdir(parents=True)  # a failed run's stale config
     (out / ".hydra" / "config.yaml").write_text("stale: true\n")
-    done = _app("train", *args, cwd=tmp_path)
+    done = run_app("train", *args, cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "stale: true" not in (out / ".hydra" / "config.yaml").read_text()
 
@@ -395,7 +380,7 @@ def test_kill_9_then_resume_gives_the_uninterrupted_runs_weights(tiny_dataset, t
         ]
 
     whole = tmp_path / "whole"
-    assert _app("train", *args(whole), "test=false", cwd=tmp_path).returncode == 0
+    assert run_app("train", *args(whole), "test=false", cwd=tmp_path).returncode == 0
     killed = tmp_path / "killed"
     env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
     proc = subprocess.Popen(
@@ -412,7 +397,7 @@ def test_kill_9_then_resume_gives_the_uninterrupted_runs_weights(tiny_dataset, t
     proc.wait()
     epoch = torch.load(last, weights_only=True)["epoch"]
     assert epoch < 3, "the run ended before it could be killed"
-    resumed = _app("train", f"resume={killed}", "hydra.output_subdir=null", cwd=tmp_path)
+    resumed = run_app("train", f"resume={killed}", "hydra.output_subdir=null", cwd=tmp_path)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     a, b = _last_weights(whole), _last_weights(killed)
     assert a.keys() == b.keys()
@@ -449,22 +434,15 @@ def test_simulates_workers_die_with_it(tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     deadline = time.time() + 10
-    while any(Path(f"/proc/{p}").exists() and not _zombie(p) for p in workers):
+    while any(Path(f"/proc/{p}").exists() and not zombie(p) for p in workers):
         assert time.time() < deadline, "workers outlived their parent"
         time.sleep(0.1)
-
-
-def _zombie(pid: int) -> bool:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
-    except OSError:
-        return True
 
 
 def test_an_output_folder_that_is_a_file_is_one_line(trained, tmp_path):
     (tmp_path / "afile").write_text("mine\n")
     ckpt = trained[1]["best_checkpoint"]
-    line = _one_line_error(_app("export", f"ckpt_path={ckpt}", "out=afile", cwd=tmp_path))
+    line = one_line_error(run_app("export", f"ckpt_path={ckpt}", "out=afile", cwd=tmp_path))
     assert line.startswith("error: afile: a file stands where a folder belongs; choose another")
     assert (tmp_path / "afile").read_text() == "mine\n"
 
@@ -486,7 +464,7 @@ def test_hydra_writing_onto_a_full_or_read_only_disk_is_one_line(
     for disk, problem in ((small_disk, "no space left"), (read_only_disk, "read-only")):
         run = disk / "run"
         args = [*tiny_overrides(tiny_dataset, run), f"hydra.run.dir={run}"]
-        line = _one_line_error(_app("train", *args, cwd=tmp_path))
+        line = one_line_error(run_app("train", *args, cwd=tmp_path))
         assert problem in line.lower() and str(disk) in line
 
 

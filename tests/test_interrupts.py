@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers import zombie
 
 PY = sys.executable
 
@@ -119,13 +120,6 @@ def test_a_study_s_training_child_ends_with_a_killed_parent(tmp_path):
     parent.send_signal(signal.SIGKILL)
     parent.wait()
     deadline = time.time() + 10
-    while Path(f"/proc/{child}").exists() and not _zombie(child):
+    while Path(f"/proc/{child}").exists() and not zombie(child):
         assert time.time() < deadline, "the child outlived its killed parent"
         time.sleep(0.05)
-
-
-def _zombie(pid: int) -> bool:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
-    except OSError:
-        return True

@@ -3,35 +3,16 @@ file and what is allowed; a refused command leaves no folder it created (and eve
 did not create) behind; records read from anywhere."""
 
 import json
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import tiny_overrides
+from helpers import one_line_error, run_app, tiny_overrides
 
 from odmv.io.exr import read_channel, write_exr
 from odmv.io.runfolder import FAILED, METRICS, recorded_dataset
 from odmv.study.results import find_runs
-
-PY = sys.executable
-
-
-def _app(name, *args, cwd):
-    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
-    return subprocess.run(
-        [PY, "-m", f"odmv.{name}", *args], cwd=cwd, capture_output=True, text=True, env=env
-    )
-
-
-def _one_line_error(done) -> str:
-    lines = done.stderr.strip().splitlines()
-    assert done.returncode == 2, done.stderr[-2000:]
-    assert len(lines) == 1 and lines[0].startswith("error: "), done.stderr[-2000:]
-    return lines[0]
 
 
 @pytest.mark.parametrize(
@@ -46,13 +27,13 @@ def _one_line_error(done) -> str:
     ],
 )
 def test_simulate_refuses_bad_sizes_and_views_leaving_no_folder(args, expected, tmp_path):
-    line = _one_line_error(_app("simulate", "out=ds", "scenes=2", *args, cwd=tmp_path))
+    line = one_line_error(run_app("simulate", "out=ds", "scenes=2", *args, cwd=tmp_path))
     assert line == expected or line.startswith(expected)
     assert not (tmp_path / "ds").exists()
 
 
 def test_an_unquoted_non_ascii_path_says_how_to_quote_it(tmp_path):
-    line = _one_line_error(_app("simulate", "out=données", "scenes=2", cwd=tmp_path))
+    line = one_line_error(run_app("simulate", "out=données", "scenes=2", cwd=tmp_path))
     assert line == """error: out: Hydra reads this value only quoted; write 'out="données"'"""
 
 
@@ -67,7 +48,7 @@ def test_an_unquoted_non_ascii_path_says_how_to_quote_it(tmp_path):
 )
 def test_train_names_the_key_and_what_it_takes(args, expected, tiny_dataset, tmp_path):
     run = tmp_path / "run"
-    line = _one_line_error(_app("train", *tiny_overrides(tiny_dataset, run), *args, cwd=tmp_path))
+    line = one_line_error(run_app("train", *tiny_overrides(tiny_dataset, run), *args, cwd=tmp_path))
     assert line.startswith(expected)
     assert not run.exists()
 
@@ -79,8 +60,8 @@ def test_an_empty_test_split_is_refused_before_the_first_epoch(dataset_copy, tmp
         scene["split"] = "train" if scene["split"] == "test" else scene["split"]
     path.write_text(json.dumps(manifest))
     run = tmp_path / "run"
-    done = _app("train", *tiny_overrides(dataset_copy, run), cwd=tmp_path)
-    line = _one_line_error(done)
+    done = run_app("train", *tiny_overrides(dataset_copy, run), cwd=tmp_path)
+    line = one_line_error(done)
     assert line.startswith(f"error: {dataset_copy}: no test scenes (train 9, val 1, test 0); its")
     assert "train with test=false" in line
     assert not run.exists() and "epoch 1/" not in done.stdout
@@ -91,10 +72,10 @@ def test_black_fringes_are_found_by_the_validator_and_refused_by_training(datase
     sid = next(s["id"] for s in manifest["scenes"] if s["split"] == "train")
     for path in sorted((dataset_copy / "scenes" / sid / "fringe").glob("up_f*.exr")):
         write_exr(path, {"Y": np.zeros_like(read_channel(path, "Y"))})
-    done = _app("validate", str(dataset_copy), cwd=tmp_path)
+    done = run_app("validate", str(dataset_copy), cwd=tmp_path)
     assert done.returncode != 0 and "up_f0_s00.exr: no fringe" in done.stdout
     run = tmp_path / "run"
-    line = _one_line_error(_app("train", *tiny_overrides(dataset_copy, run), cwd=tmp_path))
+    line = one_line_error(run_app("train", *tiny_overrides(dataset_copy, run), cwd=tmp_path))
     assert f"scenes/{sid}/fringe/up_f" in line and ": no fringe (1-99 %" in line
     assert not run.exists()
 
@@ -122,7 +103,7 @@ def test_a_manifest_rig_that_the_project_would_ignore_or_divide_by_is_refused(
         node = node[key]
     node[edit[-1]] = 0 if edit[0] == "geometry" else -node[edit[-1]]
     (copy / "manifest.json").write_text(json.dumps(manifest))
-    done = _app("validate", str(copy), cwd=tmp_path)
+    done = run_app("validate", str(copy), cwd=tmp_path)
     assert done.returncode != 0 and expected in done.stdout, done.stdout
 
 
@@ -131,16 +112,16 @@ def test_refused_predict_and_export_leave_no_folder_they_made_and_every_one_they
 ):
     ckpt = trained[1]["best_checkpoint"]
     scene = next((tiny_dataset / "scenes").iterdir())
-    done = _app("predict", f"ckpt_path={ckpt}", f"input={scene}", "out=p", "views=[front]",
+    done = run_app("predict", f"ckpt_path={ckpt}", f"input={scene}", "out=p", "views=[front]",
                 cwd=tmp_path)  # fmt: skip
     assert "views=['front']: no view 'front'; the net knows only right, down, left, up" in (
-        _one_line_error(done)
+        one_line_error(done)
     )
-    _one_line_error(_app("export", "ckpt_path=missing.ckpt", "out=e", cwd=tmp_path))
+    one_line_error(run_app("export", "ckpt_path=missing.ckpt", "out=e", cwd=tmp_path))
     assert not (tmp_path / "p").exists() and not (tmp_path / "e").exists()
     (tmp_path / "mine").mkdir()
-    _one_line_error(_app("export", "ckpt_path=missing.ckpt", "out=mine", cwd=tmp_path))
-    _one_line_error(_app("predict", "ckpt_path=missing.ckpt", f"input={scene}", "out=mine",
+    one_line_error(run_app("export", "ckpt_path=missing.ckpt", "out=mine", cwd=tmp_path))
+    one_line_error(run_app("predict", "ckpt_path=missing.ckpt", f"input={scene}", "out=mine",
                          cwd=tmp_path))  # fmt: skip
     assert (tmp_path / "mine").is_dir()
 
@@ -159,7 +140,7 @@ def test_a_relative_dataset_in_a_record_is_found_from_any_working_folder(tmp_pat
 def test_study_verbs_refuse_missing_runs_in_one_line(tmp_path):
     for args in (["summarize", "X=/missing*"], ["heights", "/missing"], ["shadows", "A=/no*"],
                  ["split", "/missing"]):  # fmt: skip
-        line = _one_line_error(_app("study", *args, cwd=tmp_path))
+        line = one_line_error(run_app("study", *args, cwd=tmp_path))
         assert "/missing" in line or "/no*" in line
 
 
@@ -174,7 +155,7 @@ def test_the_report_counts_failed_and_killed_runs_as_unfinished(trained, tmp_pat
     runs, pending = find_runs([tmp_path])
     assert [r.folder.name for r in runs] == ["done"] and (tmp_path / "done" / METRICS).is_file()
     assert [p.name for p in pending] == ["failed", "killed"]
-    done = _app("report", f"runs=[{tmp_path}]", f"out={tmp_path / 'report'}", cwd=tmp_path)
+    done = run_app("report", f"runs=[{tmp_path}]", f"out={tmp_path / 'report'}", cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
     text = Path(tmp_path / "report" / "tables.md").read_text()
     assert "1 finished" in text and "2 unfinished" in text and "(failed: failed.txt)" in text
