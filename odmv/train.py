@@ -64,7 +64,7 @@ from odmv.training.consistency import (
 from odmv.training.ema import WeightEMA
 from odmv.training.module import FPPModule, load_module
 from odmv.training.pace import CpuPace, EpochLine, busy_cores_note, heavy_on_cpu
-from odmv.training.provenance import provenance
+from odmv.training.provenance import provenance, training_setup
 from odmv.training.runlock import RunFolderError, check_new_run, check_not_held, holding
 from odmv.training.sweep import append_row
 
@@ -393,6 +393,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
             # another run (experiments/results/accuracy/notebook.md, "Repeatability")
             threads=torch.get_num_threads(),
             overrides=" ".join(overrides),
+            setup=training_setup(cfg),  # what a row's seeds must share (odmv.study.results)
             **provenance(dm.root),
         )
         if trainer.is_global_zero:
@@ -400,7 +401,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
             write_json(out_dir / METRICS, record)
             append_row(
                 out_dir / "metrics.csv",
-                {k: v for k, v in record.items() if not isinstance(v, list)},
+                {k: v for k, v in record.items() if not isinstance(v, (list, dict))},
             )
     return metrics
 

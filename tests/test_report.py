@@ -104,6 +104,41 @@ def test_tables_give_each_seeds_thread_count_and_epochs_in_seed_order():
     assert s4[head.index("threads")] == "2, 2, ?"
 
 
+def test_runs_of_other_datasets_or_settings_are_rows_of_their_own_not_seeds():
+    """Seeds of one row share a dataset and a setup; an Optuna trial at another learning rate
+    and a run on another dataset beside them are their own rows, said in the labels, and the
+    claims compare the setup on the dataset most runs used."""
+    setup = {"optimizer.lr": "0.002", "model.net.base_width": "16"}
+    runs = [_run("odmvnet", 4, 0.20 + 0.01 * k, 0.5, k, "multitask") for k in (0, 1)]
+    runs += [_run("odmvnet", 4, mae, mae, 0, "multitask") for mae in (0.9, 3.0)]
+    runs += [_run("odmvnet", 3, 0.3, 0.8, k, "multitask") for k in (0, 1)]
+    for r in runs:
+        r.metrics |= {"dataset": "data/synthetic-a", "dataset_sha1": "aaa", "setup": setup}
+    runs[2].metrics["setup"] = setup | {"optimizer.lr": "0.0003"}  # a trial of a search
+    runs[3].metrics |= {"dataset": "data/synthetic-b", "dataset_sha1": "bbb"}  # the quickstart's
+    views = build_tables(runs)["views"]
+    s4 = [c for c in views if c.row.label == "S=4 (all)"]
+    assert [(c.label, len(c.runs), c.primary) for c in s4] == [
+        ("S=4 (all) [dataset synthetic-a; optimizer.lr=0.002]", 2, True),
+        ("S=4 (all) [dataset synthetic-a; optimizer.lr=0.0003]", 1, False),
+        ("S=4 (all) [dataset synthetic-b; optimizer.lr=0.002]", 1, False),
+    ]
+    assert s4[0].stat("test/mae_mm")[0] == pytest.approx(0.205)  # not 1.0775 over four
+    lines = table_markdown("views", views)
+    assert any(line.startswith(f"| {s4[1].label} | 1 | 0.9000 |") for line in lines)
+    claims = _claims(runs)
+    assert f"{s4[0].label} below S=3 (right, left, up)" in claims
+    assert not any("0.0003" in claim or "synthetic-b" in claim for claim in claims)
+    # records from before setups were recorded: grouped by dataset alone
+    for r in runs:
+        del r.metrics["setup"]
+    s4 = [c for c in build_tables(runs)["views"] if c.row.label == "S=4 (all)"]
+    assert [(c.label, len(c.runs)) for c in s4] == [
+        ("S=4 (all) [dataset synthetic-a]", 3),
+        ("S=4 (all) [dataset synthetic-b]", 1),
+    ]
+
+
 def test_a_run_at_a_rows_own_width_goes_to_that_row_only():
     runs = [_run("odmvnet", 4, 0.20 + 0.01 * k, 0.5, k, "multitask") for k in (0, 1)]
     runs += [_run("odmvnet", 4, 0.10 + 0.01 * k, 0.4, k, "multitask") for k in (0, 1)]

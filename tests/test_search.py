@@ -42,6 +42,16 @@ def test_a_two_trial_search_names_its_best_trial_and_continues(tiny_dataset, tmp
     assert f"best: job {best} ({tmp_path / 'a' / best}), val/mae_mm = " in summary
     result = yaml.safe_load((tmp_path / "a" / "optimization_results.yaml").read_text())
     assert result["best_value"] == pytest.approx(values[best])
+    # the trials trained other learning rates and widths: rows of their own in the report
+    cmd = [sys.executable, "-m", "odmv.report", f"runs=[{tmp_path / 'a'}]", "figures=0",
+           f"out={tmp_path / 'report'}"]  # fmt: skip
+    report = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert report.returncode == 0, report.stderr[-2000:]
+    tables = (tmp_path / "report" / "tables.md").read_text()
+    rows = [line.split(" | ") for line in tables.splitlines() if line.startswith("| S=4 (all) [")]
+    s4 = [row for row in rows if row[1].isdigit()]  # the view-count table's, not the claims'
+    assert len(s4) == 2 and [row[1] for row in s4] == ["1", "1"], tables
+    assert "optimizer.lr=" in s4[0][0] and "mixed setups: `S=4 (all)` holds runs of 2" in tables
     # the study is in ./optuna.db: the same search, asked again, goes on from there
     again = search(tmp_path, tiny_dataset, "hparams_search=optuna", "hydra.sweeper.n_trials=1",
                    f"hydra.sweep.dir={tmp_path / 'b'}")  # fmt: skip

@@ -317,7 +317,7 @@ def table_bars(name: str, cells: list[Cell]) -> go.Figure:
     """A table's test MAE per row, all pixels and shadowed ones: mean bars, the std as error
     bars, and every seed as a dot."""
     fig = go.Figure()
-    labels = [wrapped(c.row.label, 24) for c in cells]
+    labels = [wrapped(c.label, 24) for c in cells]
     for k, (sub, text) in enumerate((("", "all pixels"), ("_shadowed", "shadowed pixels"))):
         key = f"test/mae_mm{sub}"
         stats = [c.stat(key) for c in cells]
@@ -334,7 +334,7 @@ def table_bars(name: str, cells: list[Cell]) -> go.Figure:
         for c in cells:
             for r in c.by_seed():
                 if key in r.metrics:
-                    seeds_x.append(wrapped(c.row.label, 24))
+                    seeds_x.append(wrapped(c.label, 24))
                     seeds_y.append(float(r.metrics[key]))
                     seeds_t.append(f"seed {r.metrics.get('seed', '?')}")
         fig.add_trace(

@@ -205,7 +205,7 @@ def _report(path: Path) -> Page:
     for cell in page.tables.get("table2", []):
         with_predictions = [r for r in cell.by_seed() if (r.folder / PREDICTIONS).is_file()]
         if with_predictions:
-            labelled.append((cell.row.label, with_predictions[0]))
+            labelled.append((cell.label, with_predictions[0]))
     ordered = _figure_scene_order(runs)
     page.scenes, page.notes = _scenes(labelled, _dataset(runs))
     page.scenes.sort(key=lambda s: ordered.index(s.sid) if s.sid in ordered else len(ordered))

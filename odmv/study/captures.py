@@ -130,7 +130,7 @@ def report_section(runs, cells, out: Path) -> list[str]:
         rows.append(row | {k: float(r.metrics.get(f"test/{k}", np.nan)) for k in COLUMNS})
     for c in cells:
         if c.runs and c.row.model != "classical":
-            row = {"method": c.row.label, "images": 1, "seeds": len(c.runs), "coverage": 1.0}
+            row = {"method": c.label, "images": 1, "seeds": len(c.runs), "coverage": 1.0}
             rows.append(row | {k: c.stat(f"test/{k}")[0] for k in COLUMNS if k != "coverage"})
     figure(out / "captures.png", rows)
     return [

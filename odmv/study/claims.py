@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from odmv.study.results import FIRST_VIEW, SPLITS, Cell, fmt
+from odmv.study.results import FIRST_VIEW, SPLITS, Cell, fmt, primary
 
 CLAIMS_RULE = (
     "Each claim compares mean MAE over seeds, on the test split and on the held-out set (200 "
@@ -121,18 +121,19 @@ def claims_markdown(tables: dict[str, list[Cell]]) -> list[str]:
         verdict = _both({"test": _verdict(diff, se), "heldout": _verdict(*held)})
         lines.append(f"| {claim} | {means}{note} | {shown} | {verdict} |")
 
+    tables = primary(tables)
     views, table1 = tables["views"], tables["table1"]
     for fewer, more in zip(views, views[1:], strict=False):
-        compare(f"{more.row.label} below {fewer.row.label}", more, fewer)
+        compare(f"{more.label} below {fewer.label}", more, fewer)
     for before, after in zip(table1, table1[1:], strict=False):
-        compare(f"{after.row.label} below {before.row.label}", after, before)
+        compare(f"{after.label} below {before.label}", after, before)
     ours = next(c for c in tables["table2"] if c.row.model == "odmvnet")
     for c in tables["table2"]:
         paper = c.row.improvement_pct
         if paper is None:
             continue
         compare(
-            f"{ours.row.label} below {c.row.label}",
+            f"{ours.label} below {c.label}",
             ours,
             c,
             f" (reduction {_reduction(ours, c)}; paper {paper} %)",
@@ -142,7 +143,7 @@ def claims_markdown(tables: dict[str, list[Cell]]) -> list[str]:
         if peer is not None:
             size, peer_size = (c.stat("parameters")[0] / 1e6 for c in (extra, peer))
             compare(
-                f"{extra.row.label} below {peer.row.label}",
+                f"{extra.label} below {peer.label}",
                 extra,
                 peer,
                 f" (reduction {_reduction(extra, peer)}; {size:.1f} M against {peer_size:.1f} M"
@@ -162,6 +163,6 @@ def claims_markdown(tables: dict[str, list[Cell]]) -> list[str]:
                 else "–"
             )
             shown.append(f"{at}{100 * d:+.1f} ± {100 * se:.1f} points" if np.isfinite(se) else "–")
-        claim = f"{views[-1].row.label} gains more over {views[0].row.label} on {name} pixels"
+        claim = f"{views[-1].label} gains more over {views[0].label} on {name} pixels"
         lines.append(f"| {claim} | {'; '.join(gains)} | {'; '.join(shown)} | {_both(verdicts)} |")
     return lines + [""]

@@ -22,7 +22,7 @@ TALL_MM = 8.0  # Fig. 6 states each model's error above this height (the metrics
 
 
 def bar_chart(path: Path, name: str, cells: list[Cell]) -> None:
-    labels = [c.row.label for c in cells]
+    labels = [c.label for c in cells]
     x = np.arange(len(cells))
     fig, ax = plt.subplots(figsize=(max(6, 1.3 * len(cells)), 4))
     for k, (sub, colour, text) in enumerate(
@@ -90,7 +90,7 @@ def comparison_figures(
         runs = c.by_seed()
         p = next((p for p in map(kept_predictions, runs) if p), None)
         if p:
-            preds.append((c.row.label, p))
+            preds.append((c.label, p))
     if not preds:
         return []
     listed = [r for c in cells for r in c.runs if (r.folder / SCENES_CSV).is_file()]

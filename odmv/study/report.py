@@ -25,6 +25,7 @@ from odmv.study.results import (
     build_tables,
     find_runs,
     fmt,
+    primary,
 )
 from odmv.study.tables import TITLES, Row
 from odmv.training.metrics import subset_suffix
@@ -75,7 +76,7 @@ def table_markdown(name: str, cells: list[Cell]) -> list[str]:
     lines = [f"### {TITLES[name]}", "", "| " + " | ".join(head) + " |"]
     lines.append("|" + "|".join(["---"] + ["---:"] * (len(head) - 1)) + "|")
     for c in cells:
-        cols = [c.row.label, str(len(c.runs)) if c.runs else "–"]
+        cols = [c.label, str(len(c.runs)) if c.runs else "–"]
         for sub in ("", "_shadowed"):
             cols += [fmt(*c.stat(f"test/{m}{sub}")) for m in METRICS]
         cols += [_subset_cell(c, f"test/mae_mm_{k}") for k in (*FIRST_VIEW, *EDGES)]
@@ -98,6 +99,7 @@ def table_markdown(name: str, cells: list[Cell]) -> list[str]:
 
 def improvements_markdown(cells: list[Cell]) -> list[str]:
     """ODMV-Net's relative MAE reduction against each baseline, ours beside the paper's."""
+    cells = [c for c in cells if c.primary]
     ours = next(c for c in cells if c.row.model == "odmvnet")
     lines = [
         "### ODMV-Net's MAE reduction against each model (%; positive: ODMV-Net is better)",
@@ -116,7 +118,7 @@ def improvements_markdown(cells: list[Cell]) -> list[str]:
             ok = np.isfinite(base) and np.isfinite(mine) and base > 0
             vals.append(f"{100 * (base - mine) / base:.1f}" if ok else "–" if sub else "missing")
         paper = c.row.improvement_pct
-        lines.append(f"| {c.row.label} | {paper if paper else '–'} | " + " | ".join(vals) + " |")
+        lines.append(f"| {c.label} | {paper if paper else '–'} | " + " | ".join(vals) + " |")
     return lines + [""]
 
 
@@ -126,7 +128,7 @@ def table_csv(path: Path, cells: list[Cell]) -> None:
     keys += ["test/coverage"] + [f"test/share{s}" for s in subsets[1:]]
     rows = []
     for c in cells:
-        r = {"row": c.row.label, "model": c.row.model, "views": c.row.views}
+        r = {"row": c.label, "model": c.row.model, "views": c.row.views}
         r["ablation"] = c.row.ablation or ""
         r["seeds"] = len(c.runs)
         for k in keys + ["parameters", "train_seconds"]:
@@ -199,6 +201,28 @@ def _dataset_line(runs: list[Run]) -> str:
     ) or ("unknown")
 
 
+def _mixed_lines(tables: dict[str, list[Cell]]) -> list[str]:
+    """Header lines for rows whose runs trained different things, and for rows compared across
+    datasets: said, never averaged."""
+    lines = []
+    for cells in tables.values():
+        for c in cells:
+            if c.primary and c.variant:
+                n = sum(1 for d in cells if d.row == c.row)
+                lines.append(
+                    f"- mixed setups: `{c.row.label}` holds runs of {n} setups (another dataset "
+                    "or setting): each is its own row, named by what sets it apart, and the "
+                    "claims use the first"
+                )
+    used = {r.dataset for cells in primary(tables).values() for c in cells for r in c.runs}
+    if len(used) > 1:
+        lines.append(
+            f"- mixed datasets: the rows come from {len(used)} datasets ({', '.join(sorted(used))})"
+            "; rows of different datasets are not like for like"
+        )
+    return lines
+
+
 # ----------------------------------------------------------------------------- the report
 def write_report(
     folders: list[Path],
@@ -227,6 +251,7 @@ def write_report(
         f"- trained: {_dates(runs)}",
         f"- runs: {len(runs)} finished ({seconds / 60:.1f} min of training), {len(pending)} "
         "unfinished",
+        *_mixed_lines(tables),
         "",
         "Metrics are over the test split in mm on depth (MSE in mm², which the paper prints as "
         "mm); mean ± std over seeds (std where a row has two or more). `shadowed`: pixels inside "

@@ -4,6 +4,7 @@ fingerprint, recorded with each run so a report rebuilt from its records says th
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import platform
 import subprocess
@@ -70,3 +71,50 @@ def provenance(dataset: str | Path) -> dict[str, str | None]:
         "machine": machine(),
         "finished": utc_now(),
     }
+
+
+#: config keys that say where or how fast a run went, not what it trained: its seed and thread
+#: count (a row's repeats), paths, logging, progress, testing, memory and kernel choices, the
+#: dataset's settings (its fingerprint stands for them) and the per-net tables that the chosen
+#: net's keys resolve
+NOT_SETUP = (
+    "seed", "seeds", "threads", "paths", "hydra", "logger", "callbacks", "root", "resume",
+    "ckpt_path", "task_name", "test", "test_table", "log_images", "optimized_metric",
+    "contenders", "widths", "alphas", "lrs", "compile", "data.root", "data.cache",
+    "data.cache_dir", "data.num_workers", "data.progress", "data.render", "data.simulate",
+    "data.eval_batch_size", "trainer.default_root_dir", "trainer.enable_progress_bar",
+    "trainer.enable_model_summary", "trainer.log_every_n_steps", "trainer.accelerator",
+    "trainer.devices", "trainer.num_sanity_val_steps", "trainer.limit_val_batches",
+    "trainer.limit_test_batches", "trainer.deterministic", "model.table2",
+    "model.net.memory_format", "model.net.activation_checkpointing", "optimizer.fused",
+)  # fmt: skip
+#: runs that start from another run's weights: which run is a path (seed-named, moved with
+#: the records), so the setup says only that one was given
+GIVEN = ("init_from", "distill_from")
+
+
+def training_setup(cfg) -> dict[str, str]:
+    """What a run trained, as ``dotted.key -> value`` of its resolved config without
+    :data:`NOT_SETUP`: two runs with equal setups and datasets are seeds of one row
+    (odmv.study.results), any other pair is not."""
+    from omegaconf import OmegaConf
+
+    def leaves(node, prefix: str):
+        if isinstance(node, dict):
+            for k, v in node.items():
+                yield from leaves(v, f"{prefix}{k}.")
+        else:
+            yield prefix[:-1], node
+
+    skipped = tuple(f"{k}." for k in NOT_SETUP)
+    setup = {}
+    for key, _ in leaves(OmegaConf.to_container(cfg, resolve=False), ""):
+        if key in NOT_SETUP or key.startswith(skipped):
+            continue
+        value = OmegaConf.select(cfg, key, throw_on_resolution_failure=False)
+        if key in GIVEN:
+            value = "given" if value else None
+        elif OmegaConf.is_config(value):
+            value = OmegaConf.to_container(value, resolve=True)  # a list
+        setup[key] = json.dumps(value) if isinstance(value, list) else str(value)
+    return dict(sorted(setup.items()))

@@ -42,7 +42,8 @@ class CollectResults(Callback):
         value = job_return._return_value  # the property raises for a failed job
         if job_return.status == JobStatus.COMPLETED and isinstance(value, dict):
             for key, v in value.items():
-                if key not in row:  # the override columns stay as the user typed them
+                # the override columns stay as the user typed them; the setup is in metrics.json
+                if key not in row and not isinstance(v, dict):
                     row[key] = "+".join(map(str, v)) if isinstance(v, list) else v
             row["status"] = "ok"
         else:
