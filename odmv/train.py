@@ -39,7 +39,14 @@ from odmv.cli import (
 )
 from odmv.io.atomic import write_json, write_text
 from odmv.io.manifest import MANIFEST, load_manifest
-from odmv.io.runfolder import CALIBRATION_CHECK, CONFIG, METRICS, portable, portable_record
+from odmv.io.runfolder import (
+    CALIBRATION_CHECK,
+    CONFIG,
+    METRICS,
+    portable,
+    portable_record,
+    recorded_dataset,
+)
 from odmv.rig import whole_number
 from odmv.training.adaptation import (
     CHECK_SOURCES,
@@ -231,6 +238,7 @@ def adapted_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
         data["augment"] = None
     if a.replay and not a.supervised:  # the run's own training scenes, as it read them
         own = OmegaConf.to_container(out.data, resolve=True) | {"calibration": True}
+        own["root"] = str(recorded_dataset({"dataset": own["root"]}, run))  # from any folder
         if not (Path(own["root"]) / MANIFEST).is_file():
             raise ValueError(
                 f"adaptation.replay: {own['root']}: the twin that {run} was trained on is not "

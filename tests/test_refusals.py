@@ -137,6 +137,32 @@ def test_a_relative_dataset_in_a_record_is_found_from_any_working_folder(tmp_pat
     assert found == tmp_path / "work" / "data" / "tiny"
 
 
+@pytest.mark.slow
+def test_a_checkpoint_moved_with_its_dataset_evaluates_and_exports_from_anywhere(
+    tiny_dataset, tmp_path
+):
+    """A checkout moved (or copied to another machine) with its data/ and outputs/: the
+    checkpoint's dataset path is stale, the dataset is found beside the run."""
+    work, elsewhere = tmp_path / "work", tmp_path / "elsewhere"
+    shutil.copytree(tiny_dataset, work / "data" / "tiny")
+    elsewhere.mkdir()
+    done = run_app("train", *tiny_overrides("data/tiny", "outputs/run"), cwd=work)
+    assert done.returncode == 0, done.stderr[-2000:]
+    work = work.rename(tmp_path / "moved")
+    ckpt = (
+        work
+        / "outputs"
+        / "run"
+        / json.loads((work / "outputs/run" / METRICS).read_text())["best_checkpoint"]
+    )
+    done = run_app("evaluate", f"ckpt_path={ckpt}", "figures=0", "hydra.run.dir=ev", cwd=elsewhere)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert f"on the test split of {work / 'data' / 'tiny'}" in done.stdout
+    done = run_app("export", f"ckpt_path={ckpt}", "out=e", cwd=elsewhere)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert f"for the run's dataset {work / 'data' / 'tiny'}" in done.stdout
+
+
 def test_study_verbs_refuse_missing_runs_in_one_line(tmp_path):
     for args in (["summarize", "X=/missing*"], ["heights", "/missing"], ["shadows", "A=/no*"],
                  ["split", "/missing"]):  # fmt: skip

@@ -48,19 +48,23 @@ def portable_record(metrics: dict, run: Path) -> dict:
 
 
 def recorded_dataset(metrics: dict, run: Path) -> Path:
-    """The dataset the record of ``run`` names: where it says; a relative path is relative to
-    the folder the run was started in, so below the working directory or below one of the
-    run folder's parents (a page made from elsewhere); else, for a record written on another
-    machine, the folder of that name in this checkout's ``data/``; the recorded path if none is
-    there (its reader says so)."""
+    """The dataset the record (or checkpoint) of ``run`` names: where it says; a relative path
+    is relative to the folder the run was started in, so below the working directory or below
+    one of the run folder's parents (a page made from elsewhere); else, for a record written in
+    a folder since moved or on another machine, the folder of that name in the ``data/`` of one
+    of the run folder's parents (the checkout it moved with) or of the working directory; the
+    recorded path if none is there (its reader says so)."""
     path = Path(metrics["dataset"])
     if path.is_dir():
         return path
-    for base in [] if path.is_absolute() else Path(run).resolve().parents:
+    parents = Path(run).resolve().parents
+    for base in [] if path.is_absolute() else parents:
         if (base / path).is_dir():
             return base / path
-    here = Path(DATA_DIR) / path.name
-    return here if here.is_dir() else path
+    for base in (*parents, Path(".")):
+        if (base / DATA_DIR / path.name).is_dir():
+            return base / DATA_DIR / path.name
+    return path
 
 
 def lock_holder(folder: Path) -> int | None:

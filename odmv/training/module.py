@@ -24,7 +24,7 @@ from lightning.pytorch.utilities import rank_zero_only
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import MASKS
 from odmv.io.atomic import write_csv, write_npz
-from odmv.io.runfolder import PREDICTIONS, SCENES_CSV
+from odmv.io.runfolder import PREDICTIONS, SCENES_CSV, recorded_dataset
 from odmv.models.blocks import split_availability
 from odmv.models.phase import fuse, has_phase_head
 from odmv.training.checkpoint import CheckpointError, check_weights, read_checkpoint
@@ -541,7 +541,9 @@ def write_test_outputs(folder: Path, rows: list[dict], predictions: dict[str, li
 
 def load_module(ckpt_path: str | Path) -> FPPModule:
     """Rebuild a trained module (on the CPU) from its checkpoint alone; a missing, unreadable,
-    foreign or inconsistent file raises CheckpointError naming it."""
+    foreign or inconsistent file raises CheckpointError naming it. Its dataset, where saved
+    relative to the training's working folder, is looked for from the checkpoint's folder too
+    (odmv.io.runfolder.recorded_dataset), so evaluate and export find it from anywhere."""
     ckpt = read_checkpoint(ckpt_path)
     try:
         # evaluated, predicted and exported eagerly and as a net of its own, however it was
@@ -553,4 +555,7 @@ def load_module(ckpt_path: str | Path) -> FPPModule:
         raise CheckpointError(f"{ckpt_path}: its net settings do not build a net ({e})") from None
     check_weights(ckpt_path, ckpt["state_dict"], module.state_dict())
     module.load_state_dict(ckpt["state_dict"])
+    data = module.hparams.get("data_cfg")
+    if data and data.get("root"):  # saved as the training's command line gave it
+        data["root"] = str(recorded_dataset({"dataset": data["root"]}, Path(ckpt_path).parent))
     return module
