@@ -13,8 +13,11 @@ Formats (docs/dataset.md, "Importing datasets" and "A dataset from your own rig"
 - ``folder``: ``src/<scene>/<view>.<ext>`` images (odmv.io.images) and ``depth.<exr|npy|png>``
   per scene, depth <= 0 or NaN invalid (``depth_scale`` mm per stored unit).
 - ``sequences``: ``src/<scene>/`` holds each projector's phase-shifting sequences (named by
-  ``psp.*``, odmv.classical.sequences); with ``calibration=`` the ground truth is their classical
-  reconstruction (NaN where rejected) and the input one image of the finest frequency.
+  ``psp.*``, odmv.classical.sequences); with ``calibration=FILE`` (or ``manifest=DATASET``, whose
+  rig it is) the ground truth is their classical reconstruction (NaN where rejected), and the
+  full sequences are kept (``images: full``, steps in the twin's order), so a run reads the
+  fringe it needs (the finest by default; adapt and predict the one their net was trained on)
+  and adaptation reconstructs its classical target.
 
 Invalid pixels become NaN depth (the manifest declares ``invalid_depth``), and the lit and
 footprint masks are the valid pixels (for sequences: the modulated ones). Sizes that are not
@@ -53,6 +56,7 @@ from odmv.io.formats import (
     Sample,
     crop16,
     intensity,
+    residual_origin_rad,
     sequence_scenes,
 )
 from odmv.io.guard import refuse_inside
@@ -64,10 +68,12 @@ from odmv.io.manifest import (
     FRINGE_DIR,
     HEIGHT_QUANTITY,
     LIT_FILE,
+    MANIFEST,
     SCENE_SPEC_FILE,
     FringeSpec,
     Manifest,
     fringe_name,
+    load_manifest,
 )
 
 
@@ -78,10 +84,12 @@ def convert(
     intensity: str = "auto",
     calibration: str | Path | None = None,
     psp: PspOptions | None = None,
+    manifest: str | Path | None = None,
     **options,
 ) -> Manifest:
     """Write the dataset at ``out`` (which must not exist) from ``src`` in format ``fmt``;
-    ``calibration`` and ``psp`` are the sequences format's."""
+    ``calibration`` (a file) or ``manifest`` (a dataset whose rig it is), and ``psp``, are the
+    sequences format's."""
     if fmt not in FORMATS:
         raise ConvertError(f"format: {fmt!r} unknown; choose {', '.join(FORMATS)}")
     if intensity not in INTENSITIES:
@@ -92,14 +100,24 @@ def convert(
     refuse_inside("out", [out], [src])
     if out.exists() and any(out.iterdir()):
         raise ConvertError(f"{out}: exists and is not empty; choose another out=")
+    if calibration and manifest:
+        raise ConvertError("calibration, manifest: give one rig, not both")
     rig = load_calibration(calibration) if calibration else None
+    if manifest:
+        rig = load_manifest(manifest).rig
+        if rig is None:
+            raise ConvertError(f"manifest: {manifest} has no rig calibration")
+        calibration = Path(manifest) / MANIFEST
     if fmt == "sequences":
         psp = psp or PspOptions()
         scenes, views = sequence_scenes(src, rig, psp)
         psp = replace(psp, steps=count_steps(scenes[0], psp, views[0]))
         options |= {"calibration": rig, "psp": psp}
     elif rig is not None:
-        raise ConvertError(f"calibration: format={fmt} takes none (only format=sequences)")
+        raise ConvertError(
+            f"{'manifest' if manifest else 'calibration'}: format={fmt} takes none (only "
+            "format=sequences)"
+        )
     tmp = out.with_name(f".{out.name}.partial")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
@@ -137,6 +155,13 @@ def _write(
         periods_px = tuple(axis_px / p for p in psp.frequencies)
         fringe = FringeSpec(periods_px, psp.steps, False, len(periods_px) - 1, 0)
         source["decoder"] = asdict(psp) | {"method": "odmv.classical.row.reconstruct_scene"}
+        # the sequences as stored: the twin's step order, one shift left on all, and how the
+        # classical target decodes them (odmv.classical.row.twin_options)
+        extra["sequences"] = {
+            "phase_origin_rad": residual_origin_rad(psp, psp.steps),
+            "unwrap": psp.unwrap,
+            "min_modulation": psp.min_modulation,
+        }
     input_name = partial(fringe_name, frequency=len(fringe.periods_px) - 1, step=0)
     scenes, shape, views, hows = [], None, None, set()
     lo, hi = np.inf, -np.inf
@@ -152,18 +177,29 @@ def _write(
         if finite.size:
             lo, hi = min(lo, float(finite.min())), max(hi, float(finite.max()))
         d = root / "scenes" / sid
-        for v, image in images.items():
-            image, how = intensity(crop(np.asarray(image)), mode)
-            bad = int((~np.isfinite(image)).sum())
-            if bad:
-                raise ConvertError(
-                    f"{src}: sample {index} ({label or 'no split'}), view {v}: {bad} fringe "
-                    "pixel(s) are not finite (NaN or infinite); only depth may be NaN (no truth)"
-                )
-            if how not in hows:
-                hows.add(how)
-                print(f"intensity: {src}: {how}", flush=True)
-            write_exr(d / FRINGE_DIR / input_name(v), {FRINGE_CHANNEL: image})
+        for v, stored in images.items():
+            stored = np.asarray(stored)
+            if stored.ndim == 2:  # the network's image alone
+                named = {input_name(v): stored}
+            else:  # full sequences (F, N, H, W)
+                named = {
+                    fringe_name(v, f, n): stored[f, n]
+                    for f in range(stored.shape[0])
+                    for n in range(stored.shape[1])
+                }
+            for name, raw in named.items():
+                image, how = intensity(crop(raw), mode)
+                bad = int((~np.isfinite(image)).sum())
+                if bad:
+                    raise ConvertError(
+                        f"{src}: sample {index} ({label or 'no split'}), view {v}: {bad} fringe "
+                        "pixel(s) are not finite (NaN or infinite); only depth may be NaN (no "
+                        "truth)"
+                    )
+                if how not in hows:
+                    hows.add(how)
+                    print(f"intensity: {src}: {how}", flush=True)
+                write_exr(d / FRINGE_DIR / name, {FRINGE_CHANNEL: image})
         valid = np.isfinite(depth)
         masks = lit if lit else dict.fromkeys(views, valid)
         masks = {v: crop(masks[v]).astype(np.float16) for v in views}
@@ -186,7 +222,7 @@ def _write(
         views=tuple(views),
         fringe=fringe,
         rig=rig,
-        images="training",
+        images="training" if psp is None else "full",
         scenes=scenes,
         extra=extra,
     )
@@ -200,7 +236,10 @@ def main(cfg: DictConfig) -> None:
 
     def run():
         psp = PspOptions.from_cfg(cfg.psp) if cfg.format == "sequences" else None
-        return convert(cfg.format, cfg.src, cfg.out, cfg.intensity, cfg.calibration, psp, **options)
+        return convert(
+            cfg.format, cfg.src, cfg.out, cfg.intensity, cfg.calibration, psp, cfg.manifest,
+            **options,
+        )  # fmt: skip
 
     m = run_app(run)
     counts = {s: sum(x["split"] == s for x in m.scenes) for s in ("train", "val", "test")}

@@ -31,7 +31,7 @@ from odmv.classical.fringe import period_in_camera_px
 from odmv.classical.row import decode_views, fused_depth, single_shot_depth
 from odmv.classical.sequences import PspOptions
 from odmv.cli import app, run_app
-from odmv.data.dataset import DataError, SampleSpec, load_scene
+from odmv.data.dataset import DataError, SampleSpec, load_scene, matching_fringe
 from odmv.deploy.inference import load_predictor
 from odmv.io.atomic import write_atomic, write_npy, write_text
 from odmv.io.calibration import load_calibration
@@ -101,42 +101,12 @@ def network_images(scene: Scene, predictor, reader: ImageReader, rig: Rig, have=
         return images
     if scene.manifest is not None:
         m = scene.manifest
-        frequency, step = matching_fringe(scene, predictor)
+        frequency, step = matching_fringe(m, predictor.input_spec, predictor.views, scene.folder)
         spec = SampleSpec(tuple(predictor.views), *predictor.size, frequency, step)
         images = np.array(load_scene(m, scene.name, spec)["fringes"], np.float32)
         images[[v not in have for v in predictor.views]] = 0  # views= left them out
         return images
     return reader.read(scene.folder, predictor.views, predictor.size, fringes=True)
-
-
-def matching_fringe(scene: Scene, predictor) -> tuple[int, int]:
-    """The (frequency, step) of a dataset scene whose image is the one the checkpoint was
-    trained on: the manifest's training image, or with full sequences the one of the
-    checkpoint's period and step; a scene that has none, or lacks a view, is refused."""
-    m, spec = scene.manifest, predictor.input_spec
-    lost = [v for v in predictor.views if v not in m.views]
-    if lost:
-        raise DataError(
-            f"{scene.folder}: no view {', '.join(lost)} in its dataset (it has "
-            f"{', '.join(m.views)}); the checkpoint takes {', '.join(predictor.views)}"
-        )
-    frequency = m.fringe.resolve_frequency(m.fringe.train_frequency)
-    period, step = spec.get("period_px"), spec.get("step")
-    if period is None or m.extra.get("fringe_period_known") is False:
-        return frequency, m.fringe.train_step  # nothing to compare (an import)
-    periods = list(m.fringe.periods_px)
-    if abs(periods[frequency] - period) < 1e-6 and m.fringe.train_step == step:
-        return frequency, step
-    if m.images == "full" and step < m.fringe.steps:
-        for f, p in enumerate(periods):
-            if abs(p - period) < 1e-6:
-                return f, step
-    raise DataError(
-        f"{scene.folder}: its network image is the {periods[frequency]:g} px fringe (period in "
-        f"projector px) at step {m.fringe.train_step}; the checkpoint was trained on the "
-        f"{period:g} px fringe at step {step} of {spec.get('n_steps')}: use a dataset rendered "
-        f"with that fringe (fringe.periods_px, fringe.train_frequency) or images=full"
-    )
 
 
 def expected_images(predictor) -> str:

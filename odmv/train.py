@@ -37,6 +37,7 @@ from odmv.cli import (
     task_overrides,
     tool,
 )
+from odmv.data.dataset import matching_fringe
 from odmv.io.atomic import write_json, write_text
 from odmv.io.manifest import MANIFEST, load_manifest
 from odmv.io.runfolder import (
@@ -225,13 +226,18 @@ def adapted_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
     if not root:
         raise ValueError("adapt: root=DATASET names the fringe images to adapt to")
     adaptation = OmegaConf.to_container(cfg.adaptation, resolve=True)
-    images = load_manifest(root).images if adaptation["target"] == "auto" else None
+    user = load_manifest(root)
+    images = user.images if adaptation["target"] == "auto" else None
     a = OmegaConf.create(resolved_adaptation(adaptation, images))
+    # the user's image of the fringe the net was trained on (full sequences hold them all)
+    net = read_checkpoint(ckpt)["hyper_parameters"]
+    fringe = matching_fringe(user, net.get("input_spec") or {}, net.get("views") or [], root)
     out = _moved_targets(OmegaConf.load(saved))
     out.paths = OmegaConf.to_container(cfg.paths, resolve=True)
     # the dataset: read, never rendered; without its ground truth (its files may be absent)
     # unless this is the supervised fine-tune that adaptation is measured against
     data = {"root": str(Path(root).resolve()), "render": False, "labels": bool(a.supervised)}
+    data |= {"fringe_frequency": fringe[0], "fringe_step": fringe[1]}
     data |= {"calibration": True, "val_from_train": a.val_share}  # the loss needs the maps
     # classical targets are per scene, as stored: none turned; auto as well (how it was measured)
     if adaptation["target"] != "fringes":

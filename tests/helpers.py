@@ -64,34 +64,6 @@ def predicted_depth(model, scene, out):
     return read_channel(written["depth"], "Z")
 
 
-def calibration_of(rig, size):
-    """The default rig written as an OpenCV-style calibration (pixel centres at integers)."""
-    from odmv.io.calibration import _WORLD_TO_CAMERA
-
-    cam = rig.camera_at(*size)
-    shift = np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
-    t_wc = cam.t
-    projectors = {}
-    for name, p in rig.projectors().items():
-        R_cp = p.R @ _WORLD_TO_CAMERA.T
-        projectors[name] = {
-            "image_size": [p.width_px, p.height_px],
-            "K": (p.K - shift).tolist(),
-            "R": R_cp.tolist(),
-            "t": (p.t - R_cp @ t_wc).tolist(),
-            "phase_axis": p.phase_axis,
-        }
-    return {
-        "camera": {
-            "image_size": list(size),
-            "K": (cam.K - shift).tolist(),
-            "dist": cam.dist.tolist(),
-        },
-        "reference_plane_mm": float(cam.center[2]),
-        "projectors": projectors,
-    }
-
-
 def run_app(name, *args, cwd):
     """``python -m odmv.<name> ARGS`` in ``cwd`` as a user runs it (no HYDRA_FULL_ERROR)."""
     import os

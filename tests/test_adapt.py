@@ -531,3 +531,74 @@ def test_the_adapt_study_measures_adapted_and_supervised_nets(base_run, tmp_path
     assert row["refused"] == "True" and float(row["supervised_mm"]) > 0
     refused = out / "runs" / f"{base_run.name}-adapted-projector_rotation_1" / "refused.txt"
     assert "views disagree" in refused.read_text()
+
+
+def _captured(labelled, folder, frequencies, shift_sign=1):
+    """The twin's sequences of ``frequencies`` as a rig saves them: 16-bit PNG per image,
+    ``{view}_f{f}_s{n:02d}.png``, image n at the twin's step shift_sign n (mod N)."""
+    from PIL import Image as PILImage
+
+    from odmv.io.exr import read_channel
+    from odmv.io.manifest import fringe_name
+
+    m = load_manifest(labelled)
+    for s in m.scenes:
+        for view in m.views:
+            for f, source in enumerate(frequencies):
+                for n in range(m.fringe.steps):
+                    twin = (
+                        m.scene_dir(s["id"])
+                        / "fringe"
+                        / fringe_name(view, source, shift_sign * n % m.fringe.steps)
+                    )
+                    level = np.clip(read_channel(twin, "Y"), 0, 1) * 65535
+                    path = folder / s["id"] / f"{view}_f{f}_s{n:02d}.png"
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    PILImage.fromarray(np.round(level).astype(np.uint16)).save(path)
+
+
+@pytest.mark.slow
+def test_the_own_rig_path_captures_convert_adapt_predict(base_run, sequences, tmp_path):
+    """docs/dataset.md's own-rig path, rehearsed on the twin as a user types it: the twin's
+    sequences saved as a rig saves them (shifted the other way), its calibration file written
+    from the dataset, converted with the full sequences kept, the net (trained on the 240 px
+    fringe) adapted to the classical target on its own 240 px images, and the adapted net
+    predicting a converted scene. Captures without the 240 px fringe are refused."""
+    from helpers import run_app
+
+    from odmv.io.exr import read_channel
+
+    labelled = sequences[0]
+    _captured(labelled, tmp_path / "captures", (0, 1, 2), shift_sign=-1)
+    done = run_app("calibration", str(labelled), "rig.yaml", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    done = run_app("convert", "format=sequences", "src=captures", "calibration=rig.yaml",
+                   "psp.shift_sign=-1", "out=mine", cwd=tmp_path)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    mine = load_manifest(tmp_path / "mine")
+    assert mine.images == "full" and mine.views == load_manifest(labelled).views
+    assert mine.fringe.periods_px == (1920.0, 240.0, 30.0) and mine.fringe.steps == 12
+    ours = read_channel(mine.scene_dir("000000") / "fringe" / "right_f1_s03.exr", "Y")
+    twin = read_channel(labelled / "scenes" / "000000" / "fringe" / "right_f1_s03.exr", "Y")
+    assert np.abs(ours - np.clip(twin, 0, 1)).max() < 1e-4  # the twin's step 3, not image 3
+    done = run_app("train", "adapt=true", f"init_from={base_run}", "root=mine",
+                   "paths.output_dir=adapted", "adaptation.epochs=1", "adaptation.replay=0",
+                   "trainer.enable_progress_bar=false", cwd=tmp_path)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    record = json.loads((tmp_path / "adapted" / "metrics.json").read_text())
+    assert record["target"] == "classical" and record["calibration_check"] == "classical"
+    ckpt = tmp_path / "adapted" / record["best_checkpoint"]
+    done = run_app("predict", f"ckpt_path={ckpt}", "input=mine/scenes/000005", "out=pred",
+                   cwd=tmp_path)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert np.isfinite(read_channel(tmp_path / "pred" / "depth.exr", "Z")).mean() > 0.5
+    # captures of the 1920 and 30 px fringes only: the net's 240 px image is not among them
+    _captured(labelled, tmp_path / "other", (0, 2))
+    done = run_app("convert", "format=sequences", "src=other", "manifest=mine",
+                   "psp.periods=[1,64]", "out=theirs", cwd=tmp_path)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    done = run_app("train", "adapt=true", f"init_from={base_run}", "root=theirs",
+                   "paths.output_dir=refused", cwd=tmp_path)  # fmt: skip
+    assert done.returncode == 2 and not (tmp_path / "refused").exists()
+    assert "holds the 1920, 30 px fringe(s)" in done.stderr
+    assert "trained on the 240 px fringe at step 0 of 12" in done.stderr

@@ -8,11 +8,12 @@ import re
 import numpy as np
 import pytest
 import scipy.io
-from helpers import calibration_of, compose_config, tiny_overrides
+from helpers import compose_config, tiny_overrides
 from PIL import Image as PILImage
 
 from odmv.classical.sequences import PspOptions
 from odmv.convert import ConvertError, convert
+from odmv.io.calibration import calibration_of
 from odmv.io.exr import read_channel
 from odmv.io.manifest import HEIGHT_QUANTITY, load_manifest
 from odmv.io.validation import validate
@@ -190,7 +191,7 @@ def test_sequences_of_a_rig_become_a_dataset_with_the_classical_ground_truth(
             (src / sid).mkdir(parents=True, exist_ok=True)
             PILImage.fromarray(level).save(src / sid / f"{path.stem}.png")
     calibration = tmp_path / "rig.json"
-    calibration.write_text(json.dumps(calibration_of(twin.rig, (64, 64))))
+    calibration.write_text(json.dumps(calibration_of(twin.rig, 64, 64)))
     m = convert("sequences", src, tmp_path / "ds", calibration=calibration, psp=PspOptions())
     assert m.views == twin.views and m.fringe.steps == 12
     meta = json.loads((tmp_path / "ds" / "manifest.json").read_text())

@@ -9,8 +9,8 @@ import odmv
 PACKAGE = Path(odmv.__file__).parent
 #: what ``python -m odmv.X`` runs
 APPS = {
-    "convert", "demo", "evaluate", "export", "predict", "report", "reproduce", "simulate",
-    "train", "validate", "view",
+    "calibration", "convert", "demo", "evaluate", "export", "predict", "report", "reproduce",
+    "simulate", "train", "validate", "view",
 }  # fmt: skip
 #: the leaves every layer imports
 LEAVES = {"__init__", "cli", "config", "rig"}

@@ -8,9 +8,10 @@ import sys
 import numpy as np
 import OpenEXR
 import pytest
-from helpers import calibration_of, compose_config
+from helpers import compose_config
 from PIL import Image as PILImage
 
+from odmv.io.calibration import calibration_of
 from odmv.io.exr import read_channel, write_exr
 from odmv.io.images import ImageError, fit_to, read_image
 from odmv.predict import predict
@@ -189,7 +190,7 @@ def test_an_opencv_calibration_gives_the_rig_it_describes(trained, tiny_dataset,
 
     rig = load_manifest(tiny_dataset).rig
     path = tmp_path / "rig.yaml"
-    path.write_text(yaml.safe_dump(calibration_of(rig, (64, 64))))
+    path.write_text(yaml.safe_dump(calibration_of(rig, 64, 64)))
     calibrated = load_calibration(path)
     np.testing.assert_allclose(calibrated.camera_at(32, 32).P, rig.camera_at(32, 32).P, atol=1e-9)
     for name, p in rig.projectors().items():

@@ -6,12 +6,13 @@ import json
 
 import numpy as np
 import pytest
-from helpers import FRINGE, RIG, calibration_of, compose_config, render
+from helpers import FRINGE, RIG, compose_config, render
 from PIL import Image as PILImage
 
 from odmv.classical import fringe as fpp
 from odmv.classical.sequences import PspOptions
 from odmv.data.dataset import DataError
+from odmv.io.calibration import calibration_of
 from odmv.io.exr import read_exr
 from odmv.io.manifest import fringe_name
 from odmv.predict import predict
@@ -141,7 +142,7 @@ def test_depth_with_a_calibration_matches_the_twin(twin, tmp_path, monkeypatch):
         fpp, "wrapped_phase", lambda *a, **k: sequences_read.append(1) or wrapped(*a, **k)
     )
     write_sequences(twin, tmp_path / "in", ["right", "left"], -1, 3, "{view}_f{f}_s{s:02d}", 0)
-    (tmp_path / "rig.json").write_text(json.dumps(calibration_of(RIG, (128, 128))))
+    (tmp_path / "rig.json").write_text(json.dumps(calibration_of(RIG, 128, 128)))
     (done,) = decode(
         tmp_path / "in",
         tmp_path / "out",

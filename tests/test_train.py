@@ -327,7 +327,7 @@ def test_predict_refuses_scenes_of_another_fringe(trained, tmp_path):
         [f"ckpt_path={trained[1]['best_checkpoint']}", f"input={other}/scenes/000000",
          f"out={tmp_path / 'out'}"],
     )  # fmt: skip
-    with pytest.raises(ValueError, match="its network image is the 240 px fringe .* the "
+    with pytest.raises(ValueError, match="its dataset holds the 240 px fringe.* the "
                        "checkpoint was trained on the 30 px fringe at step 0 of 12"):  # fmt: skip
         predict(cfg)
 

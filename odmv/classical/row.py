@@ -51,10 +51,20 @@ EDGE_MM = 0.3  # mixed-pixel rejection against the 3 x 3 median
 
 
 def twin_options(m) -> PspOptions:
-    """The decoding options of a dataset's sequences (the twin's conventions)."""
-    width = next(iter(m.rig.projectors().values())).width_px
-    periods = tuple(width / p for p in sorted(m.fringe.periods_px, reverse=True))
-    return PspOptions(periods=periods, steps=m.fringe.steps, min_modulation=MIN_MODULATION)
+    """The decoding options of a dataset's sequences: the twin's conventions, with what a
+    converted capture's manifest says of its own (``sequences``: the first phase left after
+    its steps were put in the twin's order, its unwrapping and rejection level)."""
+    proj = next(iter(m.rig.projectors().values()))
+    axis_px = proj.width_px if proj.phase_axis == "u" else proj.height_px
+    periods = tuple(axis_px / p for p in sorted(m.fringe.periods_px, reverse=True))
+    own = m.extra.get("sequences") or {}
+    return PspOptions(
+        periods=periods,
+        steps=m.fringe.steps,
+        phase_origin_rad=own.get("phase_origin_rad", 0.0),
+        min_modulation=own.get("min_modulation", MIN_MODULATION),
+        unwrap=own.get("unwrap", "temporal"),
+    )
 
 
 @dataclass(frozen=True)

@@ -133,6 +133,41 @@ def check_spec(
     )
 
 
+def matching_fringe(m: Manifest, input_spec: dict, views, where) -> tuple[int, int]:
+    """The (frequency, step) of dataset ``m`` whose image is the one a net was trained on
+    (``input_spec``: a checkpoint's, its fringe period in projector px, its phase step of
+    how many): the manifest's network image, or with full sequences the image of that period
+    at the same phase shift; refused, naming ``where``, when the dataset holds none or lacks
+    one of the net's ``views``. An import that does not know its period is taken as it is."""
+    lost = [v for v in views if v not in m.views]
+    if lost:
+        raise DataError(
+            f"{where}: no view {', '.join(lost)} in its dataset (it has {', '.join(m.views)}); "
+            f"the checkpoint takes {', '.join(views)}"
+        )
+    frequency = m.fringe.resolve_frequency(m.fringe.train_frequency)
+    period, step = input_spec.get("period_px"), input_spec.get("step")
+    if period is None or m.extra.get("fringe_period_known") is False:
+        return frequency, m.fringe.train_step  # nothing to compare (an import)
+    periods = list(m.fringe.periods_px)
+    shift = step * m.fringe.steps / (input_spec.get("n_steps") or m.fringe.steps)  # in its steps
+    same = abs(shift - round(shift)) < 1e-6
+    if abs(periods[frequency] - period) < 1e-6 and same and m.fringe.train_step == round(shift):
+        return frequency, round(shift)
+    if m.images == "full" and same:
+        for f, p in enumerate(periods):
+            if abs(p - period) < 1e-6:
+                return f, round(shift) % m.fringe.steps
+    held = ", ".join(f"{p:g}" for p in periods) if m.images == "full" else f"{periods[frequency]:g}"
+    raise DataError(
+        f"{where}: its dataset holds the {held} px fringe(s) (period in projector px; "
+        f"{m.fringe.steps} steps{'' if m.images == 'full' else ', one image'}); the checkpoint "
+        f"was trained on the {period:g} px fringe at step {step} of {input_spec.get('n_steps')}"
+        ": capture or render that fringe (a dataset with full sequences, images=full, holds "
+        "every fringe it was made with)"
+    )
+
+
 def split_scenes(m: Manifest, fractions: dict | None, seed: int) -> dict[str, list[str]]:
     """Scene ids per split: the manifest's labels when every scene has one, else a seeded
     permutation cut by ``fractions`` (train/val/test)."""

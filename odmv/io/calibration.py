@@ -132,5 +132,33 @@ def parse_calibration(data, path) -> CalibratedRig:
         devices[name] = Projector(name, K_p, R, R_cp @ t_wc + t_cp, w, h, axis)
     if not devices:
         raise CalibrationError(f"{path}: no projectors")
+    devices = {v: devices[v] for v in VIEW_NAMES if v in devices}  # the rig's order, not the file's
     source = json.loads(json.dumps(data))  # plain JSON types, as a manifest stores it
     return CalibratedRig(K, dist[:4], size, plane, devices, source)
+
+
+def calibration_of(rig, width_px: int, height_px: int) -> dict:
+    """A rig (the twin's, or a calibrated one) as the content of a calibration file (the
+    schema above) for a camera of ``width_px`` x ``height_px``: what
+    :func:`parse_calibration` reads back into the same rig."""
+    cam = rig.camera_at(width_px, height_px)
+    centre = np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])  # OpenCV's pixel centres
+    projectors = {}
+    for name, p in rig.projectors().items():
+        R_cp = p.R @ _WORLD_TO_CAMERA.T
+        projectors[name] = {
+            "image_size": [int(p.width_px), int(p.height_px)],
+            "K": (p.K - centre).tolist(),
+            "R": R_cp.tolist(),
+            "t": (p.t - R_cp @ cam.t).tolist(),
+            "phase_axis": p.phase_axis,
+        }
+    return {
+        "camera": {
+            "image_size": [int(width_px), int(height_px)],
+            "K": (cam.K - centre).tolist(),
+            "dist": [float(d) for d in cam.dist],
+        },
+        "reference_plane_mm": float(cam.center[2]),
+        "projectors": projectors,
+    }

@@ -201,14 +201,13 @@ def _invalid(depth, at_or_below: float) -> np.ndarray:
 def sequences(src: Path, calibration=None, psp: PspOptions | None = None) -> Iterator[Sample]:
     """``src/<scene>/`` with each projector's sequences (``psp``'s names and conventions; the
     views are the calibration's projectors whose files the first scene has). Ground truth: the
-    classical reconstruction with the calibration, NaN where rejected. Input: the finest
-    frequency's image at the twin's phase step ``train_step`` (0), i.e. the capture's image
-    whose shift is nearest to it. Lit: pixels modulated in every frequency."""
+    classical reconstruction with the calibration, NaN where rejected. Images: each view's full
+    sequences (F, N, H, W), their steps put in the twin's order (:func:`twin_steps`). Lit:
+    pixels modulated in every frequency."""
     scenes, views = sequence_scenes(src, calibration, psp)
     options, steps = psp, psp.steps
     projectors = [calibration.projectors()[v] for v in views]
-    origin_steps = options.phase_origin_rad * steps / (2 * np.pi)
-    first = int(np.round(options.shift_sign * -origin_steps)) % steps  # its shift nearest 0
+    order = twin_steps(options, steps)
     for label, scene in zip(_splits(len(scenes)), scenes, strict=True):
         stack = np.stack([read_stack(scene, options, v, steps, _read_sequence) for v in views])
         h, w = stack.shape[-2:]
@@ -217,8 +216,23 @@ def sequences(src: Path, calibration=None, psp: PspOptions | None = None) -> Ite
         for v, view_stack in zip(views, stack, strict=True):
             modulation = [wrapped_phase(s, options.shift_sign)[1] for s in view_stack]
             lit[v] = np.logical_and.reduce([b >= options.min_modulation for b in modulation])
-        inputs = {v: view_stack[-1, first] for v, view_stack in zip(views, stack, strict=True)}
+        inputs = {v: view_stack[:, order] for v, view_stack in zip(views, stack, strict=True)}
         yield Sample(label, inputs, depth.astype(np.float32), scene.name, lit)
+
+
+def twin_steps(options: PspOptions, steps: int) -> list[int]:
+    """For each of the twin's phase steps s (shift +2 pi s / N), the captured image whose shift
+    is nearest to it: image n shifts by shift_sign 2 pi n / N + phase_origin_rad. What remains
+    is one shift for all (:func:`residual_origin_rad`)."""
+    origin = options.phase_origin_rad * steps / (2 * np.pi)
+    return [int(np.round(options.shift_sign * (s - origin))) % steps for s in range(steps)]
+
+
+def residual_origin_rad(options: PspOptions, steps: int) -> float:
+    """The phase shift (rad) left on every image of the twin's order (:func:`twin_steps`):
+    zero where the captured first phase is a whole number of steps."""
+    origin = options.phase_origin_rad * steps / (2 * np.pi)
+    return float(2 * np.pi * (origin - np.round(origin)) / steps)
 
 
 def _read_sequence(scene: Path, names: list[str]) -> np.ndarray:
