@@ -51,6 +51,7 @@ from odmv.io.runfolder import (
 from odmv.rig import whole_number
 from odmv.training.adaptation import (
     CHECK_SOURCES,
+    adaptation_lines,
     check_calibration,
     second_harmonic_share,
     view_offsets,
@@ -565,7 +566,12 @@ def main(cfg: DictConfig) -> Metrics | JobFailed:
     rank_zero_print(f"run folder: {out}")
     if "tensorboard" in (run_cfg.get("logger") or {}):
         rank_zero_print(f"  TensorBoard: {tool('tensorboard')} --logdir {out / 'tensorboard'}")
-    if metrics:
+    if metrics and metrics.get("adapted_from") and "test/mae_mm" not in metrics:
+        said = [
+            f"{what.removeprefix('test: ')} {value}" for what, value in adaptation_lines(metrics)
+        ]
+        rank_zero_print("  test (no ground truth): " + "; ".join(said))
+    elif metrics:
         rank_zero_print(
             "  test: "
             + ", ".join(f"{k}={v:.4f}" for k, v in metrics.items() if k.startswith("test/"))

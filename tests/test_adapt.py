@@ -585,8 +585,15 @@ def test_the_own_rig_path_captures_convert_adapt_predict(base_run, sequences, tm
                    "paths.output_dir=adapted", "adaptation.epochs=1", "adaptation.replay=0",
                    "trainer.enable_progress_bar=false", cwd=tmp_path)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
+    assert "test (no ground truth): MAE against the classical reconstruction " in done.stdout
     record = json.loads((tmp_path / "adapted" / "metrics.json").read_text())
     assert record["target"] == "classical" and record["calibration_check"] == "classical"
+    assert 0 < record["test/classical_mae_mm"] < 20 and 0.3 < record["test/covered"] <= 1
+    done = run_app("view", "adapted", cwd=tmp_path)  # its page: the depth beside its target
+    assert done.returncode == 0, done.stderr[-2000:]
+    page = (tmp_path / "adapted" / "page.html").read_text()
+    assert "classical reconstruction (its target)" in page and "no run here kept" not in page
+    assert "MAE against the classical reconstruction" in page
     ckpt = tmp_path / "adapted" / record["best_checkpoint"]
     done = run_app("predict", f"ckpt_path={ckpt}", "input=mine/scenes/000005", "out=pred",
                    cwd=tmp_path)  # fmt: skip

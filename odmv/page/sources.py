@@ -17,6 +17,7 @@ from omegaconf import OmegaConf
 from odmv.io.runfolder import METRICS, PREDICTIONS, SCENES_CSV, recorded_dataset
 from odmv.study.prior import prior_section
 from odmv.study.results import Cell, Run, build_tables, find_runs
+from odmv.training.adaptation import adaptation_lines
 
 #: bits of a pixel's subset code: bit k lit by the dataset's view k (k < 5), then these
 SHADOWED_BIT, NO_TRUTH_BIT = 1 << 5, 1 << 6
@@ -128,6 +129,39 @@ def _scenes(labelled: list[tuple[str, Run]], dataset: Path | None) -> tuple[list
     return scenes, notes
 
 
+def _label_free_scenes(path: Path, dataset: Path | None) -> tuple[list[Scene], list[str]]:
+    """An adapted run's kept test scenes (no ground truth): its depth beside the classical
+    depth it was fitted to, with the scene's fringes where the dataset is here."""
+    from odmv.data.dataset import DataError, check_spec, load_scene
+    from odmv.io.manifest import ManifestError, load_manifest
+
+    with np.load(path / PREDICTIONS) as z:
+        kept = {k: z[k] for k in z.files}
+    try:
+        m = load_manifest(dataset) if dataset else None
+    except (ManifestError, OSError):
+        m = None
+    scenes = []
+    for k, sid in enumerate(kept["scene_id"][:SCENES]):
+        sid = str(sid)
+        predictions = {"adapted net": kept["pred_mm"][k]}
+        if "classical_mm" in kept:
+            predictions["classical reconstruction (its target)"] = kept["classical_mm"][k]
+        scene = Scene(sid, None, predictions)
+        try:
+            shape = list(kept["pred_mm"][k].shape)
+            spec = check_spec(m, m.views, shape, None, None, labels=False) if m else None
+            fringes = load_scene(m, sid, spec)["fringes"] if m else None
+        except (DataError, OSError, ValueError):
+            fringes = None
+        if fringes is not None:
+            scene.views, scene.fringes = list(m.views), dict(zip(m.views, fringes, strict=True))
+        else:
+            scene.note = f"the dataset {dataset} is not on this machine: no input fringes"
+        scenes.append(scene)
+    return scenes, []
+
+
 # ----------------------------------------------------------------------------- provenance
 def _values(runs: list[Run], key: str) -> str:
     found = sorted({str(r.metrics[key]) for r in runs if r.metrics.get(key)})
@@ -174,11 +208,19 @@ def _run(path: Path) -> Page:
     )  # fmt: skip
     views = named.get("views") or []
     label = f"{named.get('model', 'run')} (S={len(views)})" if views else path.name
-    scenes, notes = _scenes([(label, run)], _dataset([Run(path, named)]))
+    dataset = _dataset([Run(path, named)])
+    label_free = metrics.get("adapted_from") and "test/mae_mm" not in metrics
+    scenes, notes = (
+        _label_free_scenes(path, dataset) if label_free and (path / PREDICTIONS).is_file()
+        else _scenes([(label, run)], dataset)
+    )  # fmt: skip
     mae = metrics.get("test/mae_mm")
     prov = _provenance([run])[:-1]
     if mae is not None:
         prov.insert(0, ("test MAE", f"{mae:.4f} mm over the test split"))
+    if label_free:
+        prov[:0] = [("adapted from", str(metrics["adapted_from"])),
+                    *adaptation_lines(metrics)]  # fmt: skip
     if "test/mae_mm_interior" in metrics:
         prov.insert(1, ("interior / edge MAE", (
             f"{metrics['test/mae_mm_interior']:.4f} mm on {metrics['test/share_interior']:.1%} of "

@@ -46,11 +46,13 @@ def bar_chart(path: Path, name: str, cells: list[Cell]) -> None:
 
 def kept_predictions(run: Run) -> dict[str, tuple[np.ndarray, np.ndarray]] | None:
     """A run's kept test predictions: scene -> (predicted, true) depth in mm; None without
-    its file."""
+    its file or without ground truth."""
     path = run.folder / PREDICTIONS
     if not path.is_file():
         return None
     with np.load(path) as z:
+        if "depth_mm" not in z:  # an adapted net's, on scenes without ground truth
+            return None
         return {
             str(sid): (p, g)
             for sid, p, g in zip(z["scene_id"], z["pred_mm"], z["depth_mm"], strict=True)

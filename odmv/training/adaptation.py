@@ -120,3 +120,23 @@ def check_calibration(
             "adaptation.check_calibration=false to adapt anyway"
         )
     return spread
+
+
+#: An adapted run's test figures on scenes without ground truth, what each means, and how
+#: to print its value
+LABEL_FREE = {
+    "classical_mae_mm": ("MAE against the classical reconstruction", "{:.4f} mm"),
+    "covered": ("pixels the classical reconstruction covers", "{:.1%}"),
+    "phase_rad": ("RMS phase error of the fringe fit", "{:.4f} rad"),
+    "change_mm": ("mean change from the starting net", "{:.4f} mm"),
+    "loss": ("the loss minimised (net units)", "{:.4f}"),
+}
+
+
+def adaptation_lines(metrics: dict, split: str = "test") -> list[tuple[str, str]]:
+    """(meaning, value with unit) of each of ``split``'s label-free figures a record holds."""
+    return [
+        (f"{split}: {meaning}", form.format(metrics[f"{split}/{key}"]))
+        for key, (meaning, form) in LABEL_FREE.items()
+        if f"{split}/{key}" in metrics
+    ]

@@ -194,7 +194,10 @@ class FPPModule(L.LightningModule):
             target = self._classical_target(batch["scene_id"], depth_mm)
             fit = depth_loss(out["depth"], self.norm.depth(target), self.weights)["loss"]
             covered = torch.isfinite(target).float().mean()
+            ok = torch.isfinite(target)
+            gap = (depth_mm - target)[ok].abs()
             terms = {"classical": fit, "covered": covered, "loss": fit}
+            terms["classical_mae_mm"] = gap.mean() if gap.numel() else fit.new_tensor(float("nan"))
         else:
             linear = self.norm.intensity(batch["fringes"].float())
             fit = consistency_loss(
@@ -333,7 +336,10 @@ class FPPModule(L.LightningModule):
 
     def test_step(self, batch, _):
         _, pred_mm, masks = self._evaluate(batch, "test")
-        if self.test_dir is None or self.adapt:
+        if self.test_dir is None:
+            return
+        if self.adapt:  # no ground truth: the depth, beside the classical target where fitted
+            self._keep_label_free(batch, pred_mm)
             return
         per = per_image_subset_errors(pred_mm, batch["depth_mm"], masks)
         for i, sid in enumerate(batch["scene_id"]):
@@ -344,6 +350,25 @@ class FPPModule(L.LightningModule):
             ("pred_mm", pred_mm[:, 0].float().cpu().numpy()),
             ("depth_mm", batch["depth_mm"][:, 0].cpu().numpy()),
         ):
+            self._predictions.setdefault(key, []).append(value)
+
+    def _keep_label_free(self, batch, pred_mm: torch.Tensor) -> None:
+        """An adapted net's test scenes kept for its page: its depth (mm) and, with the classical
+        target, the classical depth it was fitted to and its MAE against it per scene."""
+        kept = {"scene_id": list(batch["scene_id"]), "pred_mm": pred_mm[:, 0].float().cpu().numpy()}
+        classical = None
+        if self.adapt.target == "classical":
+            classical = self._classical_target(batch["scene_id"], pred_mm)
+            kept["classical_mm"] = classical[:, 0].float().cpu().numpy()
+        for i, sid in enumerate(batch["scene_id"]):
+            row = {"scene": sid}
+            if classical is not None:
+                ok = torch.isfinite(classical[i])
+                gap = (pred_mm[i] - classical[i])[ok].abs()
+                row |= {"classical_mae_mm": float(gap.mean()) if gap.numel() else float("nan"),
+                        "covered": float(ok.float().mean())}  # fmt: skip
+            self._scene_rows.append(row)
+        for key, value in kept.items():
             self._predictions.setdefault(key, []).append(value)
 
     def _log_metrics(self, stage: str) -> None:
@@ -531,11 +556,9 @@ def write_test_outputs(folder: Path, rows: list[dict], predictions: dict[str, li
     write_scene_rows(folder, rows)
     ids = np.array([s for chunk in predictions["scene_id"] for s in chunk])
     _, order = np.unique(ids, return_index=True)  # scene order, each scene once
-    arrays = {
-        "scene_id": ids[order],
-        "pred_mm": np.concatenate(predictions["pred_mm"]).astype(np.float32)[order],
-        "depth_mm": np.concatenate(predictions["depth_mm"]).astype(np.float32)[order],
-    }
+    arrays = {"scene_id": ids[order]}
+    for key in predictions.keys() - {"scene_id"}:  # depth_mm, or classical_mm of an adaptation
+        arrays[key] = np.concatenate(predictions[key]).astype(np.float32)[order]
     write_npz(folder / PREDICTIONS, arrays)
 
 
