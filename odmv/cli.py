@@ -99,6 +99,8 @@ def quiet_lightning() -> None:
     # the training loss is logged per epoch too, so an epoch shorter than the step interval
     # still draws its curve (train/loss_epoch, odmv.training.module.FPPModule.training_step)
     warnings.filterwarnings("ignore", message=r"The number of training batches .* logging interval")
+    # a resumed run's folder holds its checkpoints by design (a new run's is refused before)
+    warnings.filterwarnings("ignore", message=r"Checkpoint directory .* exists and is not empty")
     # bf16-mixed keeps the weights in float32, so the summary's 32-bit size is the right one
     warnings.filterwarnings("ignore", message=r"Precision bf16-mixed is not supported by the model")
 

@@ -44,6 +44,15 @@ def model_configs() -> dict[str, DictConfig]:
     return {p.stem: OmegaConf.load(p) for p in sorted(Path(CONF_DIR, "model").glob("*.yaml"))}
 
 
+def display_name(model: str) -> str:
+    """How reports and pages name the net whose ``model.name`` is ``model`` (its config's
+    ``model.display``; the name itself where none says)."""
+    for c in model_configs().values():
+        if c.model.get("name") == model and c.model.get("display"):
+            return str(c.model.display)
+    return model
+
+
 def nets() -> list[str]:
     """The nets: model configs that are not variants of another."""
     return [name for name, c in model_configs().items() if "defaults" not in c]

@@ -25,6 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from odmv.classical.row import classical_depths
 from odmv.cli import (
+    STOPPED,
     Interrupted,
     JobFailed,
     app,
@@ -143,10 +144,16 @@ def build(cfg: DictConfig):
         callbacks.append(WeightEMA(cfg.ema))
     if heavy_on_cpu(cfg, str(cfg.trainer.get("accelerator", "auto"))):
         callbacks.append(CpuPace(cfg))
-    if not cfg.trainer.get("enable_progress_bar", True) or not sys.stdout.isatty():
+    # Lightning's bar is for a terminal; a log file (nohup, a study, tee) gets one line an epoch
+    bar = bool(cfg.trainer.get("enable_progress_bar", True)) and sys.stdout.isatty()
+    if not bar:
         callbacks.append(EpochLine())
     trainer = hydra.utils.instantiate(
-        cfg.trainer, logger=loggers or False, callbacks=callbacks, plugins=[AtomicCheckpointIO()]
+        cfg.trainer,
+        logger=loggers or False,
+        callbacks=callbacks,
+        plugins=[AtomicCheckpointIO()],
+        enable_progress_bar=bar,
     )
     return dm, module, trainer
 
@@ -387,7 +394,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: dict | None, out_dir: Path) -> dict[str
                 datamodule=dm,
                 ckpt_path=best or None,
                 weights_only=True,
-                verbose=cfg.get("test_table", True),  # the demo prints its evaluation's instead
+                verbose=False,  # the closing lines say the main figures, metrics.json all
             )
             metrics.update({k: float(v) for k, v in results[0].items()})
         if fine_tune:
@@ -503,6 +510,13 @@ def _checked_calibration(
 
 def _interrupted(out_dir: Path, trainer: L.Trainer, sig: signal.Signals) -> Interrupted:
     name = "Ctrl-C" if sig == signal.SIGINT else sig.name
+    if not (out_dir / "checkpoints" / "last.ckpt").is_file():  # the folder goes with the stop
+        return Interrupted(
+            f"stopped by {name} before the first epoch ended (while the data was prepared or "
+            f"the epoch ran); nothing to resume: {STOPPED} (a dataset being rendered continues "
+            "where it stopped)",
+            sig,
+        )
     return Interrupted(
         f"{out_dir}: stopped by {name} in epoch {trainer.current_epoch}; resume={out_dir} "
         "continues from the last finished epoch (checkpoints/last.ckpt)",
@@ -571,13 +585,20 @@ def main(cfg: DictConfig) -> Metrics | JobFailed:
             f"{what.removeprefix('test: ')} {value}" for what, value in adaptation_lines(metrics)
         ]
         rank_zero_print("  test (no ground truth): " + "; ".join(said))
-    elif metrics:
-        rank_zero_print(
-            "  test: "
-            + ", ".join(f"{k}={v:.4f}" for k, v in metrics.items() if k.startswith("test/"))
-        )
+    elif metrics and "test/mae_mm" in metrics:
+        rank_zero_print(f"  test: {test_line(metrics)}; every figure in {out / METRICS}")
         rank_zero_print(f"  its page: {tool('python')} -m odmv.view {out}")
     return Metrics(metrics, run_cfg.get("optimized_metric"))
+
+
+def test_line(metrics: dict) -> str:
+    """The test split's main figures in a line: MAE and RMSE over all pixels, on the interior
+    and the edge band, and on the shadowed pixels, where the record has them."""
+    shown = [f"MAE {metrics['test/mae_mm']:.4f} mm", f"RMSE {metrics['test/rmse_mm']:.4f} mm"]
+    for key, name in (("interior", "interior"), ("edge", "edge band"), ("shadowed", "shadowed")):
+        if f"test/mae_mm_{key}" in metrics:
+            shown.append(f"{name} MAE {metrics[f'test/mae_mm_{key}']:.4f} mm")
+    return ", ".join(shown)
 
 
 def refuse_finished(ckpt_path, run: Path) -> None:

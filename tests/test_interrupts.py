@@ -123,3 +123,29 @@ def test_a_study_s_training_child_ends_with_a_killed_parent(tmp_path):
     while Path(f"/proc/{child}").exists() and not zombie(child):
         assert time.time() < deadline, "the child outlived its killed parent"
         time.sleep(0.05)
+
+
+@pytest.mark.slow
+def test_a_training_stopped_while_it_renders_its_dataset_offers_no_resume(tmp_path):
+    """Ctrl-C before the first epoch: no checkpoint to resume from, and the message says so
+    (not resume=RUN for a folder that is then removed); the same command then finishes."""
+    args = ["odmv.train", "experiment=quickstart", "data.simulate.scenes=24",
+            "data.simulate.resolution=32", "data.resolution=32", "data.simulate.workers=1",
+            "trainer.max_epochs=1", "trainer.limit_train_batches=2", "model.net.blocks=1",
+            "trainer.enable_progress_bar=false", "data.progress=false", "paths.output_dir=run",
+            "log_images=0"]  # fmt: skip
+    proc = _start(args, tmp_path)
+    deadline = time.time() + 300
+    while not any(p.name.startswith(".partial") for p in tmp_path.glob("data/*/scenes/*")):
+        assert time.time() < deadline and proc.poll() is None, "no scene was ever started"
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and "Traceback" not in err, err[-3000:]
+    line = err.strip().splitlines()[-1]
+    assert line.startswith("error: stopped by Ctrl-C before the first epoch ended") and (
+        "resume=" not in line
+    ), line
+    done = subprocess.run([PY, "-m", *args], cwd=tmp_path, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert (tmp_path / "run" / "metrics.json").is_file()

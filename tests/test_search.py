@@ -52,12 +52,13 @@ def test_a_two_trial_search_names_its_best_trial_and_continues(tiny_dataset, tmp
     s4 = [row for row in rows if row[1].isdigit()]  # the view-count table's, not the claims'
     assert len(s4) == 2 and [row[1] for row in s4] == ["1", "1"], tables
     assert "optimizer.lr=" in s4[0][0] and "mixed setups: `S=4 (all)` holds runs of 2" in tables
-    # the study is in ./optuna.db: the same search, asked again, goes on from there
+    assert f"-m odmv.report runs=[{tmp_path / 'a'}]" in first.stdout  # what to run next
+    # the study is in multirun/optuna.db: the same search, asked again, goes on from there
     again = search(tmp_path, tiny_dataset, "hparams_search=optuna", "hydra.sweeper.n_trials=1",
                    f"hydra.sweep.dir={tmp_path / 'b'}")  # fmt: skip
     assert again.returncode == 0, again.stderr[-2000:]
     study = optuna.load_study(
-        study_name="odmvnet-val/mae_mm", storage=f"sqlite:///{tmp_path / 'optuna.db'}"
+        study_name="odmvnet-val/mae_mm", storage=f"sqlite:///{tmp_path / 'multirun' / 'optuna.db'}"
     )
     assert len(study.trials) == 3
 

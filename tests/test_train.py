@@ -134,7 +134,8 @@ def test_a_runs_record_names_its_files_so_another_machine_finds_them(
     (tmp_path / "data").mkdir()
     (tmp_path / "data" / dataset.name).symlink_to(dataset)
     found = recorded_dataset({"dataset": f"/another/machine/data/{dataset.name}"}, moved)
-    assert found == Path("data") / dataset.name and (found / "manifest.json").is_file()
+    # data/ beside the moved run (in a parent of its folder), as a checkout's
+    assert found == tmp_path / "data" / dataset.name and (found / "manifest.json").is_file()
 
 
 def test_the_optimizer_and_schedule_come_from_config(tiny_dataset, tmp_path):

@@ -36,6 +36,7 @@ import matplotlib
 import numpy as np
 from omegaconf import OmegaConf
 
+from odmv.config import display_name
 from odmv.io.atomic import write_atomic, write_csv, write_json, write_text
 from odmv.io.runfolder import METRICS, ROBUSTNESS, recorded_dataset
 from odmv.rig import VIEW_NAMES
@@ -171,9 +172,9 @@ def _label(run: Path, metrics: dict) -> str:
     that make a robustness row of their own (a randomized twin, view dropout, a fine-tune of
     another run)."""
     views = len(metrics.get("views") or [])
-    name = f"{metrics.get('model')} S={views}"
-    if metrics.get("model") == "odmvnet" and metrics.get("width"):
-        name += f" w{metrics['width']}"
+    odmv = metrics.get("model") == "odmvnet" and metrics.get("width")
+    width = f", width {metrics['width']}" if odmv else ""
+    name = f"{display_name(str(metrics.get('model')))} (S={views}{width})"
     randomize, dropout = _setting(run, "data.randomize"), _setting(run, "view_dropout")
     if randomize:
         name += f", randomize={randomize}"

@@ -140,6 +140,8 @@ def busy_cores_note(threads: int) -> str | None:
     EPYC, 2026-12-06: 1.18 s a step against 1.60-1.84 s beside one busy process) but costs
     6-13 % idle (562-679 ms against 522-629 ms), so it is advice, not a default. None on an
     idle enough machine or where the load cannot be read."""
+    if threads <= 1:  # one thread waits on no other, and there is no fewer to advise
+        return None
     busy = busy_cores()
     if busy is None:
         return None

@@ -79,7 +79,7 @@ def provenance(dataset: str | Path) -> dict[str, str | None]:
 #: net's keys resolve
 NOT_SETUP = (
     "seed", "seeds", "threads", "paths", "hydra", "logger", "callbacks", "root", "resume",
-    "ckpt_path", "task_name", "test", "test_table", "log_images", "optimized_metric",
+    "ckpt_path", "task_name", "test", "log_images", "optimized_metric",
     "contenders", "widths", "alphas", "lrs", "compile", "data.root", "data.cache",
     "data.cache_dir", "data.num_workers", "data.progress", "data.render", "data.simulate",
     "data.eval_batch_size", "trainer.default_root_dir", "trainer.enable_progress_bar",

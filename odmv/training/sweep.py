@@ -13,7 +13,7 @@ from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from odmv.cli import JobFailed
+from odmv.cli import JobFailed, tool
 from odmv.io.atomic import write_csv, write_text
 
 RESULTS = "results.csv"
@@ -31,6 +31,12 @@ def append_row(path: Path, row: dict) -> None:
 
 
 class CollectResults(Callback):
+    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        # a search's SQLite study (hparams_search) lives beside the sweeps, in multirun/
+        storage = str(config.hydra.sweeper.get("storage") or "")
+        if storage.startswith("sqlite:///"):
+            Path(storage.removeprefix("sqlite:///")).parent.mkdir(parents=True, exist_ok=True)
+
     def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs) -> None:
         hc = HydraConfig.get()
         if hc.mode is None or hc.mode.name != "MULTIRUN":
@@ -55,9 +61,18 @@ class CollectResults(Callback):
         path = Path(config.hydra.sweep.dir) / RESULTS
         rows = list(csv.DictReader(path.open())) if path.is_file() else []
         metric = config.get("optimized_metric")
-        if metric and any(r.get(metric) for r in rows):
+        ranked = bool(metric and any(r.get(metric) for r in rows))
+        if ranked:
             direction = str(config.hydra.sweeper.get("direction", "minimize"))
             write_summary(path.with_name(SUMMARY), rows, metric, direction == "maximize")
+        if rows:
+            print(
+                f"sweep: {len(rows)} jobs in {path.parent}; every job's overrides and metrics: "
+                f"{path}" + (f"; ranked by {metric}: {path.with_name(SUMMARY)}" if ranked else "")
+                + f"\n  tables and figures: {tool('python')} -m odmv.report "
+                f"runs=[{path.parent}] out={path.parent / 'report'}",
+                flush=True,
+            )  # fmt: skip
         failed = [r for r in rows if r.get("status") == "failed"]
         if failed:
             print(
