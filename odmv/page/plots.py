@@ -67,6 +67,8 @@ def error_axis(scene: Scene) -> dict:
     errs = [np.abs(p - scene.truth_mm) for p in scene.predictions.values()]
     top = max((float(np.nanmax(e)) for e in errs if np.isfinite(e).any()), default=1.0)
     ticks = [t for t in ERROR_TICKS_MM if t <= top * 1.5] or [top]
+    if len(ticks) > 3:  # on a long scale 0.05 sits a label's height from 0: one of them
+        ticks = ticks[1:]
     values = [-t for t in reversed(ticks)] + [0.0] + list(ticks)
     return {
         "colorscale": "RdBu", "reversescale": True,
@@ -171,25 +173,34 @@ def depth_maps(scene: Scene) -> go.Figure:
     ]
     panels += [(label, d, "coloraxis2", "depth %{z:.3f} mm") for label, d in
                scene.predictions.items()]  # fmt: skip
-    fig = make_subplots(1, len(panels), subplot_titles=[p[0] for p in panels],
-                        horizontal_spacing=0.01)  # fmt: skip
-    for k, (title, img, axis, template) in enumerate(panels):
+    # the inputs on a row, the depth maps on the next (each wrapped at WRAP)
+    places = [divmod(k, WRAP) for k in range(len(scene.fringes))]
+    first = (len(scene.fringes) + WRAP - 1) // WRAP
+    places += [(first + k // WRAP, k % WRAP) for k in range(len(scene.predictions))]
+    rows, cols = max(r for r, _ in places) + 1, max(c for _, c in places) + 1
+    titles = [""] * rows * cols
+    for (r, c), panel in zip(places, panels, strict=True):
+        titles[r * cols + c] = wrapped(panel[0], 28)
+    fig = make_subplots(rows, cols, subplot_titles=titles, horizontal_spacing=0.02,
+                        vertical_spacing=0.12)  # fmt: skip
+    for (r, c), (title, img, axis, template) in zip(places, panels, strict=True):
         z = img[::s, ::s].astype(np.float32)
         fig.add_trace(
             go.Heatmap(
                 z=z, x=np.arange(z.shape[1]) * s, y=np.arange(z.shape[0]) * s, coloraxis=axis,
                 hovertemplate=f"row %{{y}}, col %{{x}}<br>{template}<extra>{title}</extra>",
             ),
-            1, k + 1,
+            r + 1, c + 1,
         )  # fmt: skip
+    bar = {"len": 0.8 / rows, "y": 1 - 0.5 / rows, "thickness": 14}
     fig.update_layout(
-        **LAYOUT, height=330, width=max(700, 260 * len(panels) + 120),
-        coloraxis={"colorscale": "gray", "colorbar": {"title": "intensity", "x": 1.0, "len": 0.45,
-                   "y": 0.75}},
+        **(LAYOUT | {"margin": {"l": 40, "r": 110, "t": 50, "b": 40}}),
+        height=300 * rows + 40, width=max(700, 260 * cols + 200),
+        coloraxis={"colorscale": "gray", "colorbar": {"title": "intensity", "x": 1.01, **bar}},
         coloraxis2={"colorscale": "Viridis", "reversescale": True,
-                    "colorbar": {"title": "depth (mm)", "x": 1.08, "len": 0.45, "y": 0.75}},
+                    "colorbar": {"title": "depth<br>(mm)", "x": 1.09, **bar}},
     )  # fmt: skip
-    _pixel_axes(fig, len(panels))
+    _pixel_axes(fig, rows * cols)
     return fig
 
 
@@ -226,6 +237,7 @@ def _scene_axes(unit: str, shape: tuple[int, int]) -> dict:
         "xaxis_title": f"x ({unit})", "yaxis_title": f"y ({unit})",
         "zaxis_title": "height (mm)", "aspectmode": "manual",
         "aspectratio": {"x": 1, "y": shape[0] / shape[1], "z": 0.35},
+        "zaxis": {"nticks": 4, "tickfont": {"size": 9}},  # a short axis: few labels, apart
         "yaxis": {"autorange": "reversed"},
     }  # fmt: skip
 
@@ -317,7 +329,8 @@ def table_bars(name: str, cells: list[Cell]) -> go.Figure:
     """A table's test MAE per row, all pixels and shadowed ones: mean bars, the std as error
     bars, and every seed as a dot."""
     fig = go.Figure()
-    labels = [wrapped(c.label, 24) for c in cells]
+    # a row without a finished run keeps its slot, named so: missing, not zero
+    labels = [wrapped(c.label, 24) + ("" if c.runs else "<br>(missing)") for c in cells]
     for k, (sub, text) in enumerate((("", "all pixels"), ("_shadowed", "shadowed pixels"))):
         key = f"test/mae_mm{sub}"
         stats = [c.stat(key) for c in cells]
@@ -331,10 +344,10 @@ def table_bars(name: str, cells: list[Cell]) -> go.Figure:
             )
         )  # fmt: skip
         seeds_x, seeds_y, seeds_t = [], [], []
-        for c in cells:
+        for c, label in zip(cells, labels, strict=True):
             for r in c.by_seed():
                 if key in r.metrics:
-                    seeds_x.append(wrapped(c.label, 24))
+                    seeds_x.append(label)
                     seeds_y.append(float(r.metrics[key]))
                     seeds_t.append(f"seed {r.metrics.get('seed', '?')}")
         fig.add_trace(

@@ -179,10 +179,13 @@ def _provenance(runs: list[Run]) -> list[tuple[str, str]]:
     dates = (
         finished[0] if len(set(finished)) == 1 else f"{finished[0]} to {finished[-1]}"
     ) if finished else "not recorded"  # fmt: skip
-    datasets = sorted(
-        {f"{Path(r.metrics['dataset']).name} (sha1 {r.metrics.get('dataset_sha1', '?')})"
-         for r in runs if r.metrics.get("dataset")}
-    )  # fmt: skip
+    prints: dict[str, set] = {}  # name -> fingerprints (records before them have none)
+    for r in runs:
+        if r.metrics.get("dataset"):
+            found = prints.setdefault(Path(r.metrics["dataset"]).name, set())
+            found |= {r.metrics["dataset_sha1"]} if r.metrics.get("dataset_sha1") else set()
+    datasets = [f"{name} (sha1 {', '.join(sorted(p))})" if p else name
+                for name, p in sorted(prints.items())]  # fmt: skip
     return [
         ("commit", _values(runs, "commit")),
         ("dataset", ", ".join(datasets) or "not recorded"),
@@ -198,6 +201,14 @@ def _dataset(runs: list[Run]) -> Path | None:
 
 
 # ----------------------------------------------------------------------------- folder kinds
+def _title(kind: str, path: Path) -> str:
+    """``odmv KIND NAME``, the parent named too where the folder's name says only the kind
+    (``report``, ``robustness``)."""
+    path = path.resolve()
+    name = path.name if path.name not in kind.split() else f"{path.parent.name}/{path.name}"
+    return f"odmv {kind} {name}"
+
+
 def _run(path: Path) -> Page:
     metrics = json.loads((path / METRICS).read_text())
     run = Run(path, metrics)
@@ -228,7 +239,7 @@ def _run(path: Path) -> Page:
         )))  # fmt: skip
     markdown = "\n".join(prior_section([path]))  # the prior probe, where it ran
     return Page(
-        f"odmv run {path.name}: {label}", prov, markdown=markdown, scenes=scenes, notes=notes
+        f"{_title('run', path)}: {label}", prov, markdown=markdown, scenes=scenes, notes=notes
     )
 
 
@@ -237,7 +248,7 @@ def _report(path: Path) -> Page:
     if not runs and (path / "runs.csv").is_file():  # a report whose runs live elsewhere
         listed = [Path(r["folder"]) for r in csv.DictReader((path / "runs.csv").open())]
         runs, _ = find_runs([f for f in listed if f.is_dir()])
-    page = Page(f"odmv report {path.name}", [], markdown=(path / "tables.md").read_text())
+    page = Page(_title("report", path), [], markdown=(path / "tables.md").read_text())
     if not runs:
         page.notes.append("the runs this report was made from are not on this machine")
         return page
@@ -270,7 +281,7 @@ def _robustness(path: Path) -> Page:
     md = path / "robustness.md"
     runs, _ = find_runs([path])
     page = Page(
-        f"odmv robustness report {path.name}",
+        _title("robustness report", path),
         _provenance(runs) if runs else [],
         markdown=md.read_text() if md.is_file() else "",
         robustness=rows,
@@ -293,10 +304,10 @@ def _prediction(path: Path) -> Page:
     source = Path(str(cfg.input))
     method = cfg.get("method", "net")
     label = f"{method}: {Path(str(cfg.ckpt_path)).name}" if method == "net" else method
-    page = Page(
-        f"odmv prediction {path.name}",
-        [("input", str(source)), ("method", label), ("checkpoint", str(cfg.get("ckpt_path")))],
-    )
+    about = [("input", str(source)), ("method", label)]
+    if method == "net":
+        about.append(("checkpoint", str(cfg.get("ckpt_path"))))
+    page = Page(_title("prediction", path), about)
     for folder in folders[:SCENES]:
         depth = read_exr(folder / "depth.exr", ["Z"])["Z"].astype(np.float32)
         scene_dir = source if folder == path else source / folder.name
