@@ -147,7 +147,7 @@ def _run_key(cfg: DictConfig) -> str:
     # (full_width reaches ODMV-Net's model.net only, so a baseline's row ignores it too)
     for per_net in ("widths", "alphas", "lrs", "full_width"):
         d.pop(per_net, None)
-    for about in ("table2", "published_parameters"):  # what the registry says of the net
+    for about in ("table2", "published_parameters", "display"):  # the registry's words on it
         d["model"].pop(about, None)
     net = hydra.utils.get_class(d["model"]["net"]["_target_"])
     # a loss setting the net has no output for is never read

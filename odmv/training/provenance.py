@@ -85,7 +85,7 @@ NOT_SETUP = (
     "data.eval_batch_size", "trainer.default_root_dir", "trainer.enable_progress_bar",
     "trainer.enable_model_summary", "trainer.log_every_n_steps", "trainer.accelerator",
     "trainer.devices", "trainer.num_sanity_val_steps", "trainer.limit_val_batches",
-    "trainer.limit_test_batches", "trainer.deterministic", "model.table2",
+    "trainer.limit_test_batches", "trainer.deterministic", "model.table2", "model.display",
     "model.net.memory_format", "model.net.activation_checkpointing", "optimizer.fused",
 )  # fmt: skip
 #: runs that start from another run's weights: which run is a path (seed-named, moved with
