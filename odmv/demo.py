@@ -6,7 +6,6 @@ it against a constant-depth predictor, and say where the logs and figures are.""
 from __future__ import annotations
 
 import json
-import os
 import sys
 import time
 from datetime import datetime
@@ -19,24 +18,7 @@ from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.page.document import page_of
 from odmv.train import train
 from odmv.training.evaluation import evaluate, report
-from odmv.training.pace import busy_cores
-
-
-def free_threads() -> tuple[int, str]:
-    """The torch thread count that trains fastest now, and why: one per core that other work
-    leaves idle (at least one). Beside a busy process, two threads on two cores wait on each
-    other: 826-964 ms a quickstart step, against 397 ms with one (training/pace.py)."""
-    cores = os.cpu_count() or 1
-    busy = busy_cores()
-    if busy is None:
-        return cores, f"{cores} (the machine's load cannot be read)"
-    threads = max(1, min(cores, int(cores - busy + 0.5)))
-    why = (
-        "an idle machine"
-        if threads == cores
-        else f"{busy:.1f} of {cores} cores busy with other work"
-    )
-    return threads, f"{threads} of {cores} cores ({why}; threads=N to choose)"
+from odmv.training.pace import free_threads
 
 
 def main(argv: list[str]) -> int:

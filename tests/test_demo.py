@@ -28,3 +28,19 @@ def test_the_commands_the_demo_prints_work_as_printed(trained, tmp_path):
     assert (run / "report" / "tables.md").is_file()
     for made in ("prediction", "report"):  # each writes its offline page
         assert "Plotly.newPlot" in (run / made / "page.html").read_text()
+
+
+def test_the_demo_says_how_it_is_used_and_chooses_its_threads(monkeypatch, tmp_path):
+    """--help prints its use (no Hydra traceback); the threads it trains with are one per core
+    other work leaves free."""
+    from helpers import run_app
+
+    from odmv.training import pace
+
+    done = run_app("demo", "--help", cwd=tmp_path)
+    assert done.returncode == 0 and "threads=N" in done.stdout, done.stderr[-2000:]
+    monkeypatch.setattr(pace.os, "cpu_count", lambda: 2)
+    for busy, threads in ((0.1, 2), (1.0, 1), (1.9, 1)):
+        monkeypatch.setattr(pace, "busy_cores", lambda b=busy: b)
+        assert pace.free_threads()[0] == threads
+    assert pace.busy_cores_note(1) is None  # one thread: nothing fewer to advise

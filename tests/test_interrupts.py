@@ -149,3 +149,9 @@ def test_a_training_stopped_while_it_renders_its_dataset_offers_no_resume(tmp_pa
     done = subprocess.run([PY, "-m", *args], cwd=tmp_path, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-2000:]
     assert (tmp_path / "run" / "metrics.json").is_file()
+    # a log, not a terminal: one line an epoch and one line of test figures, no Lightning bars,
+    # tables or tips
+    out = done.stdout + done.stderr
+    assert "epoch 1/1: val MAE " in out and "  test: MAE " in out and "metrics.json" in out
+    for noise in ("Epoch 0/", "Test metric", "GPU available", "Tip:", "LeafSpec"):
+        assert noise not in out, noise
