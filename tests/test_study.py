@@ -199,3 +199,17 @@ def test_the_robustness_study_says_its_cost_before_it_starts(tiny_dataset):
     assert " MB;" in line or " GB;" in line
     cheap = plan(tiny_dataset, [parse_shift("noise:2")], 100, 1, False)
     assert "the networks' images only" in cheap
+
+
+def test_a_classical_curve_far_off_the_nets_does_not_set_their_scale():
+    """The robustness figures keep the nets readable where the classical method moves 6x and
+    they 1.03x: its curve runs off the top with its peak written; where all fit, no change."""
+    from odmv.study.robustness import nets_scale, off_scale_note
+
+    curves = {"ODMV-Net (S=4)": ([0, 0.1], [1.0, 1.03]), "UHRNet (S=1)": ([0, 0.1], [1.0, 0.99]),
+              "classical (nominal calibration)": ([0, 0.1], [1.0, 6.36])}  # fmt: skip
+    lo, hi, others = nets_scale(curves)
+    assert lo < 0.99 and 1.03 < hi < 1.2 and others == {"classical (nominal calibration)": 6.36}
+    assert off_scale_note(others) == "classical up to 6.4x, off scale"
+    curves["classical (nominal calibration)"] = ([0, 0.1], [1.0, 1.1])
+    assert nets_scale(curves) is None

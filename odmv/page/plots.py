@@ -14,7 +14,7 @@ from plotly.subplots import make_subplots
 from odmv.data.subsets import edge_band
 from odmv.page.sources import SHADOWED_BIT, Scene
 from odmv.study.results import Cell
-from odmv.study.robustness import ratio_curves, strength_unit
+from odmv.study.robustness import nets_scale, off_scale_note, ratio_curves, strength_unit
 from odmv.study.tables import TITLES
 from odmv.training.metrics import HEIGHT_BANDS_MM
 
@@ -367,19 +367,13 @@ def table_bars(name: str, cells: list[Cell]) -> go.Figure:
 
 
 def _nets_scale(fig: go.Figure, curves: dict, row: int, col: int) -> None:
-    """A panel where a method without a net (the classical one) moves away from 1 more than
-    four times as far as every net keeps the nets' scale: its curve runs off the top, its peak
-    written there."""
-    nets = [q for model, (_, ratios) in curves.items() if not model.startswith("classical")
-            for q in ratios]  # fmt: skip
-    others = {m: max(r) for m, (_, r) in curves.items() if m.startswith("classical")}
-    if not nets or not others or max(others.values()) - 1 <= 4 * (max(nets) - 1):
+    """A panel in the nets' scale where the classical method would squash them
+    (odmv.study.robustness.nets_scale): its curve runs off the top, its peak written there."""
+    scale = nets_scale(curves)
+    if scale is None:
         return
-    lo, hi = min(min(nets), 1.0), max(nets)
-    pad = 0.08 * (hi - lo or 0.1)
-    fig.update_yaxes(range=[lo - pad, hi + 3 * pad], row=row, col=col)
-    said = ", ".join(f"{m.split(' (')[0]} up to {q:.1f}x" for m, q in others.items())
-    fig.add_annotation(text=f"{said}, off scale", xref="x domain", yref="y domain", x=0.02,
+    fig.update_yaxes(range=[scale[0], scale[1]], row=row, col=col)
+    fig.add_annotation(text=off_scale_note(scale[2]), xref="x domain", yref="y domain", x=0.02,
                        y=0.98, showarrow=False, xanchor="left", font={"size": 9},
                        row=row, col=col)  # fmt: skip
 

@@ -378,6 +378,27 @@ def strength_unit(name: str) -> str:
     return KINDS[name].unit if name in KINDS else "view"
 
 
+def nets_scale(curves: dict) -> tuple[float, float, dict[str, float]] | None:
+    """One shift's curves (model -> (strengths, ratios)): where a method without a net (the
+    classical one) moves away from 1 more than four times as far as every net, the y range
+    that shows the nets and that method's peak ratio, to be written where its curve runs off
+    the top; None where every curve fits one scale."""
+    nets = [q for model, (_, ratios) in curves.items() if not model.startswith("classical")
+            for q in ratios]  # fmt: skip
+    others = {m: max(r) for m, (_, r) in curves.items() if m.startswith("classical")}
+    if not nets or not others or max(others.values()) - 1 <= 4 * (max(nets) - 1):
+        return None
+    lo, hi = min(min(nets), 1.0), max(nets)
+    pad = 0.08 * (hi - lo or 0.1)
+    return lo - pad, hi + 3 * pad, others
+
+
+def off_scale_note(others: dict[str, float]) -> str:
+    return (
+        ", ".join(f"{m.split(' (')[0]} up to {q:.1f}x" for m, q in others.items()) + ", off scale"
+    )
+
+
 def figure(csv_rows: list[dict], path: Path) -> None:
     """One panel per shift: each model's MAE ratio to its nominal MAE against the strength
     (``robustness.csv``'s rows), one colour and marker per model, the legend below the panels."""
@@ -399,6 +420,11 @@ def figure(csv_rows: list[dict], path: Path) -> None:
             colour, marker = STYLES[m % len(STYLES)]
             ax.plot(xs, ratios, color=colour, marker=marker, ms=5, label=model)
         ax.axhline(1.0, color="grey", lw=0.5)
+        scale = nets_scale(curves[name])
+        if scale:
+            ax.set_ylim(scale[0], scale[1])
+            ax.text(0.02, 0.97, off_scale_note(scale[2]), transform=ax.transAxes, fontsize=6,
+                    va="top")  # fmt: skip
         ax.set_title(name, fontsize=9)
         ax.set_xlabel(strength_unit(name), fontsize=8)
         ax.set_ylabel("MAE / nominal", fontsize=8)
