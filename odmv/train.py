@@ -581,9 +581,7 @@ def main(cfg: DictConfig) -> Metrics | JobFailed:
     if "tensorboard" in (run_cfg.get("logger") or {}):
         rank_zero_print(f"  TensorBoard: {tool('tensorboard')} --logdir {out / 'tensorboard'}")
     if metrics and metrics.get("adapted_from") and "test/mae_mm" not in metrics:
-        said = [
-            f"{what.removeprefix('test: ')} {value}" for what, value in adaptation_lines(metrics)
-        ]
+        said = [f"{what} {value}" for what, value in adaptation_lines(metrics)]
         rank_zero_print("  test (no ground truth): " + "; ".join(said))
     elif metrics and "test/mae_mm" in metrics:
         rank_zero_print(f"  test: {test_line(metrics)}; every figure in {out / METRICS}")

@@ -256,9 +256,10 @@ def load_scene(m: Manifest, sid: str, spec: SampleSpec) -> dict[str, np.ndarray]
     fd = d / FRINGE_DIR
     paths = [fd / fringe_name(v, spec.frequency, spec.step) for v in spec.views]
     fringes = np.stack([_fringe(p, shape) for p in paths])
+    dark = m.dark_views()
     for path, view, image in zip(paths, spec.views, fringes, strict=True):
         # the net's image must hold a fringe: training on a black one teaches nothing
-        problem = None if view in m.dark_views() else fringe_problem(path, image)
+        problem = None if view in dark else fringe_problem(path, image)
         if problem:
             raise DataError(f"{problem}; python -m odmv.validate {m.root} checks every image")
     h, w = spec.height_px, spec.width_px

@@ -230,8 +230,8 @@ def _run(path: Path) -> Page:
     if mae is not None:
         prov.insert(0, ("test MAE", f"{mae:.4f} mm over the test split"))
     if label_free:
-        prov[:0] = [("adapted from", str(metrics["adapted_from"])),
-                    *adaptation_lines(metrics)]  # fmt: skip
+        said = [(f"test: {what}", value) for what, value in adaptation_lines(metrics)]
+        prov[:0] = [("adapted from", str(metrics["adapted_from"])), *said]
     if "test/mae_mm_interior" in metrics:
         prov.insert(1, ("interior / edge MAE", (
             f"{metrics['test/mae_mm_interior']:.4f} mm on {metrics['test/share_interior']:.1%} of "

@@ -136,7 +136,7 @@ LABEL_FREE = {
 def adaptation_lines(metrics: dict, split: str = "test") -> list[tuple[str, str]]:
     """(meaning, value with unit) of each of ``split``'s label-free figures a record holds."""
     return [
-        (f"{split}: {meaning}", form.format(metrics[f"{split}/{key}"]))
+        (meaning, form.format(metrics[f"{split}/{key}"]))
         for key, (meaning, form) in LABEL_FREE.items()
         if f"{split}/{key}" in metrics
     ]

@@ -194,10 +194,8 @@ class FPPModule(L.LightningModule):
             target = self._classical_target(batch["scene_id"], depth_mm)
             fit = depth_loss(out["depth"], self.norm.depth(target), self.weights)["loss"]
             covered = torch.isfinite(target).float().mean()
-            ok = torch.isfinite(target)
-            gap = (depth_mm - target)[ok].abs()
             terms = {"classical": fit, "covered": covered, "loss": fit}
-            terms["classical_mae_mm"] = gap.mean() if gap.numel() else fit.new_tensor(float("nan"))
+            terms["classical_mae_mm"] = mae_where_known(depth_mm, target)
         else:
             linear = self.norm.intensity(batch["fringes"].float())
             fit = consistency_loss(
@@ -363,10 +361,8 @@ class FPPModule(L.LightningModule):
         for i, sid in enumerate(batch["scene_id"]):
             row = {"scene": sid}
             if classical is not None:
-                ok = torch.isfinite(classical[i])
-                gap = (pred_mm[i] - classical[i])[ok].abs()
-                row |= {"classical_mae_mm": float(gap.mean()) if gap.numel() else float("nan"),
-                        "covered": float(ok.float().mean())}  # fmt: skip
+                row |= {"classical_mae_mm": float(mae_where_known(pred_mm[i], classical[i])),
+                        "covered": float(torch.isfinite(classical[i]).float().mean())}  # fmt: skip
             self._scene_rows.append(row)
         for key, value in kept.items():
             self._predictions.setdefault(key, []).append(value)
@@ -546,6 +542,12 @@ def write_scene_rows(folder: Path, rows: list[dict]) -> None:
     """Per-scene metrics as ``test_scenes.csv``, atomically, in scene order."""
     rows = sorted({r["scene"]: r for r in rows}.values(), key=lambda r: r["scene"])
     write_csv(folder / SCENES_CSV, rows)
+
+
+def mae_where_known(pred_mm: torch.Tensor, target_mm: torch.Tensor) -> torch.Tensor:
+    """Mean |pred - target| (mm) over the pixels where the target is finite; NaN where none."""
+    known = torch.isfinite(target_mm)
+    return (pred_mm - target_mm)[known].abs().mean()  # an empty mean is NaN
 
 
 @rank_zero_only

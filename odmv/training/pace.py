@@ -132,15 +132,20 @@ def busy_cores(sample_s: float = 0.25) -> float | None:
     return cores * (1 - (idle1 - idle0) / spent) if spent > 0 else 0.0
 
 
+def _free(cores: int, busy: float) -> int:
+    """The cores other work leaves idle, rounded, at least one."""
+    return max(1, min(cores, int(cores - busy + 0.5)))
+
+
 def free_threads() -> tuple[int, str]:
     """The torch thread count that trains fastest now, and why: one per core that other work
     leaves idle (at least one). Beside a busy process, two threads on two cores wait on each
-    other: 826-964 ms a quickstart step, against 397 ms with one (training/pace.py)."""
+    other (the measurements: :func:`busy_cores_note`)."""
     cores = os.cpu_count() or 1
     busy = busy_cores()
     if busy is None:
         return cores, f"{cores} (the machine's load cannot be read)"
-    threads = max(1, min(cores, int(cores - busy + 0.5)))
+    threads = _free(cores, busy)
     why = (
         "an idle machine"
         if threads == cores
@@ -163,13 +168,13 @@ def busy_cores_note(threads: int) -> str | None:
     if busy is None:
         return None
     cores = os.cpu_count() or 1
-    idle = cores - busy
-    if idle >= threads - 0.5:
+    free = _free(cores, busy)
+    if free >= threads:
         return None
     return (
         f"the machine is busy ({busy:.1f} of {cores} cores in use by other work): {threads} "
         "torch threads will wait on each other and training runs several times slower; wait "
         "for the other jobs, start it with OMP_WAIT_POLICY=PASSIVE in the environment (the "
         "same results, about 1.4x faster when busy), or train with "
-        f"threads={max(1, int(idle + 0.5))} (another run: results depend on the thread count)"
+        f"threads={free} (another run: results depend on the thread count)"
     )
