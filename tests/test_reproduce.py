@@ -4,7 +4,9 @@ a resumed reproduction that trains nothing."""
 
 import csv
 import json
+import re
 import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -538,3 +540,47 @@ def test_a_run_records_its_commit_as_clean_while_result_records_change(tmp_path)
     assert commit(tmp_path) == sha
     code.write_text("x = 2\n")
     assert commit(tmp_path) == f"{sha} (with uncommitted changes)"
+
+
+#: an absolute path as a machine names it: a folder at the root of a POSIX or Windows disk
+_MACHINE_PATH = re.compile(
+    r"(?<![\w.~/-])/(?:work|tmp|home|root|usr|opt|var|mnt|srv|Users|private|scratch|data|nfs)/"
+    r"|\b[A-Z]:\\"
+)
+
+
+def test_committed_records_name_no_machine_path():
+    """What experiments/results holds reads the same on any checkout: its datasets, runs and
+    logs are named relative to the checkout (a script's #! line aside)."""
+    root = Path(__file__).resolve().parents[1]
+    listed = subprocess.run(
+        ["git", "ls-files", "experiments/results"], cwd=root, capture_output=True, text=True
+    ).stdout.split()
+    assert len(listed) > 100
+    found = []
+    for name in listed:
+        path = root / name
+        if path.suffix in {".npz", ".png"} or not path.is_file():
+            continue
+        for n, line in enumerate(path.read_text().splitlines(), 1):
+            if not line.startswith("#!") and _MACHINE_PATH.search(line):
+                found.append(f"{name}:{n}: {_MACHINE_PATH.search(line).group(0)}")
+    assert not found, "\n".join(found[:20])
+
+
+def test_keeping_a_run_names_the_checkouts_paths_relative_to_it(tmp_path, monkeypatch):
+    """A run's log and config name the checkout it ran in; its record names them below it."""
+    from odmv.study import runner
+
+    monkeypatch.chdir(tmp_path)
+    folder, record = tmp_path / "outputs" / "run", tmp_path / "experiments" / "record"
+    (folder / ".hydra").mkdir(parents=True)
+    (folder / "metrics.json").write_text('{"test/mae_mm": 0.2, "dataset": "data/twin"}\n')
+    cfg = compose_train([])
+    cfg.data.root = f"{tmp_path}/data/twin"
+    OmegaConf.save(cfg, folder / ".hydra" / "config.yaml")
+    (folder / "train.out").write_text(f"{tmp_path}/.venv/lib/torch/x.py:1: UserWarning\n")
+    monkeypatch.setattr(runner, "KEPT", (*runner.KEPT, "train.out"))  # as a fine-tune's is
+    assert runner.keep(folder, record)
+    assert OmegaConf.load(record / ".hydra" / "config.yaml").data.root == "data/twin"
+    assert (record / "train.out").read_text() == ".venv/lib/torch/x.py:1: UserWarning\n"

@@ -8,6 +8,7 @@ it, ``run.lock`` (the training's pid; odmv.training.runlock). How runs are found
 :mod:`odmv.study.records`."""
 
 import os
+import shutil
 from pathlib import Path
 
 from odmv.io.atomic import alive
@@ -45,6 +46,25 @@ def portable_record(metrics: dict, run: Path) -> dict:
     if out.get("dataset"):
         out["dataset"] = portable(out["dataset"])
     return out
+
+
+#: a run folder's files that are text, and may name the checkout's own paths
+_TEXT = {".json", ".yaml", ".csv", ".out", ".txt", ".md"}
+
+
+def kept_copy(source: Path, target: Path) -> None:
+    """Copy a run's file into a record that may be committed: in a text file the checkout's
+    own absolute path (the working directory, as named and resolved) is left out, so what the
+    record names under it is relative to the checkout (a log's library paths, a config's
+    folders); other files are copied as they are."""
+    if source.suffix not in _TEXT:
+        shutil.copy2(source, target)
+        return
+    text = source.read_text()
+    for base in {str(Path.cwd().resolve()), str(Path.cwd().absolute())}:
+        text = text.replace(base.rstrip("/") + "/", "")
+    target.write_text(text)
+    shutil.copystat(source, target)
 
 
 def recorded_dataset(metrics: dict, run: Path) -> Path:

@@ -26,7 +26,7 @@ from pathlib import Path
 
 from odmv.io.atomic import write_csv, write_json, write_text
 from odmv.io.processes import run_child
-from odmv.io.runfolder import METRICS, portable, recorded_dataset
+from odmv.io.runfolder import METRICS, kept_copy, portable, recorded_dataset
 from odmv.sim.shifts import NOMINAL_SHIFT, Shift, parse_shift
 from odmv.study.heldout import evaluate_on, source_seed, twin_dataset, twin_settings
 from odmv.study.robustness import shifted_set
@@ -163,7 +163,7 @@ def _keep(folder: Path, record: Path) -> None:
     for name in (*KEPT, REFUSED):
         if (folder / name).is_file():
             (record / name).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(folder / name, record / name)
+            kept_copy(folder / name, record / name)
 
 
 def gap_closed(row: dict) -> float | None:

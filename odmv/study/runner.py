@@ -26,7 +26,16 @@ from odmv.cli import task_overrides
 from odmv.config import compose_train
 from odmv.io.atomic import write_json, write_text
 from odmv.io.processes import run_child
-from odmv.io.runfolder import CONFIG, HELDOUT, METRICS, PREDICTIONS, PRIOR, ROBUSTNESS, SCENES_CSV
+from odmv.io.runfolder import (
+    CONFIG,
+    HELDOUT,
+    METRICS,
+    PREDICTIONS,
+    PRIOR,
+    ROBUSTNESS,
+    SCENES_CSV,
+    kept_copy,
+)
 from odmv.sim.shifts import parse_shift
 from odmv.study.adapt import run_adaptation
 from odmv.study.figures import FIGURE_SCENES, pick_scenes
@@ -314,7 +323,7 @@ def keep(folder: Path, record: Path) -> bool:
     for name in KEPT:
         if (folder / name).is_file():
             (tmp / name).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(folder / name, tmp / name)
+            kept_copy(folder / name, tmp / name)
     if (folder / PREDICTIONS).is_file():
         shown = set(pick_scenes(Run(folder, json.loads(metrics)), FIGURE_SCENES))
         with np.load(folder / PREDICTIONS) as z:
