@@ -13,8 +13,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from odmv.io.validation import validate
 from odmv.sim.writer import SimSettings, simulate
-from odmv.validate import validate
 
 
 def _bench(out: Path, mode: str, scenes: int, resolution: int, workers: int | None) -> None:

@@ -1,7 +1,7 @@
 """The calibration check of the classical target, on datasets with their full sequences: each
 projector's phase-shifting depth against the views' per-pixel median, averaged over the scenes
 (what ``adapt=true`` with ``adaptation.target=classical`` refuses above
-``adaptation.stale_mm``; odmv.classical.row.classical_depths, docs/robustness.md).
+``adaptation.stale_mm``; odmv.data.classical.classical_depths, docs/robustness.md).
 
     python experiments/calibration_check.py data/adapt100-seed3-*-full-* --size 64
 
@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from odmv.classical.row import classical_depths
+from odmv.data.classical import classical_depths
 from odmv.io.manifest import load_manifest
 from odmv.training.adaptation import view_spread_mm
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import difflib
 import errno
-import functools
 import logging
 import os
 import re
@@ -53,18 +52,18 @@ _STARTUP_FILES = {
 }
 
 
-_WRAPPERS = (OmegaConfBaseException, InstantiationException)
+WRAPPERS = (OmegaConfBaseException, InstantiationException)
 
 
-def _one_line(exc: BaseException, where: str | os.PathLike | None = None) -> str:
+def one_line(exc: BaseException, where: str | os.PathLike | None = None) -> str:
     from hydra.errors import MissingConfigException
 
     if isinstance(exc, MissingConfigException):  # an OSError too, for Hydra
         return hydra_line(exc)
     if isinstance(exc, OSError):
-        return _os_line(exc, where)
+        return os_line(exc, where)
     key = None
-    while isinstance(exc, _WRAPPERS) and exc.__cause__ is not None:
+    while isinstance(exc, WRAPPERS) and exc.__cause__ is not None:
         key = key or getattr(exc, "full_key", None)
         exc = exc.__cause__  # the resolver's or constructor's own message, not the wrapper
     text = str(exc).strip().splitlines()
@@ -75,7 +74,7 @@ def _one_line(exc: BaseException, where: str | os.PathLike | None = None) -> str
     return f"{key}: {line}" if key and not line.startswith(f"{key}:") else line
 
 
-def _os_line(exc: OSError, where: str | os.PathLike | None = None) -> str:
+def os_line(exc: OSError, where: str | os.PathLike | None = None) -> str:
     """``<file>: <problem>`` for an OSError; a full disk also says what to do."""
     name = exc.filename or where
     problem = exc.strerror or str(exc) or type(exc).__name__
@@ -226,12 +225,12 @@ def run_app(
             if _terminated and not isinstance(exc, Interrupted):
                 raise _sigterm_stop() from None
             raise
-    except (ValueError, OSError, Interrupted, *_WRAPPERS) as exc:
+    except (ValueError, OSError, Interrupted, *WRAPPERS) as exc:
         if traceback_wanted():
             raise
         folders = run_dir if isinstance(run_dir, list) else [run_dir] if run_dir else []
         where = folders[-1] if folders else None
-        line = _one_line(exc, where)
+        line = one_line(exc, where)
         if rank_zero_only.rank == 0:  # DDP ranks fail alike; one line is enough
             print(f"error: {line}", file=sys.stderr)
         for folder in folders:
@@ -243,62 +242,6 @@ def run_app(
 
 def traceback_wanted() -> bool:
     return os.environ.get("HYDRA_FULL_ERROR") == "1"
-
-
-def app(config_name: str) -> Callable:
-    """``hydra.main`` of an entry point (config ``odmv/conf/<config_name>.yaml``), with Hydra's
-    own errors in one line and top-level keys added with ``+`` that the app does not have
-    refused (Hydra would add them, and the app would ignore them)."""
-    import hydra
-
-    from odmv.config import CONF_DIR
-
-    def decorate(fn: Callable) -> Callable:
-        @functools.wraps(fn)
-        def checked(cfg):
-            added = unknown_added_keys()
-            if added:
-                if traceback_wanted():
-                    raise ValueError(added)
-                print(f"error: {added}", file=sys.stderr)
-                sys.exit(2)
-            return fn(cfg)
-
-        entry = hydra.main(version_base="1.3", config_path=CONF_DIR, config_name=config_name)
-        wrapped = entry(checked)
-
-        @functools.wraps(fn)
-        def main(*args, **kwargs):
-            from hydra._internal import utils
-
-            note_existing_outputs(sys.argv[1:])
-            original = utils.run_and_report
-            utils.run_and_report = _report_in_one_line
-            try:
-                return wrapped(*args, **kwargs)
-            finally:
-                utils.run_and_report = original
-
-        return main
-
-    return decorate
-
-
-def _report_in_one_line(func: Callable[[], T]) -> T:
-    """Hydra's ``run_and_report`` (it runs composition and the app), one line instead of its
-    option lists and tracebacks."""
-    try:
-        return func()
-    except Exception as exc:
-        if traceback_wanted():
-            raise
-        from hydra.errors import HydraException
-
-        line = hydra_line(exc)
-        if not isinstance(exc, (ValueError, OSError, HydraException, *_WRAPPERS)):
-            line += f" ({type(exc).__name__}; HYDRA_FULL_ERROR=1 shows where)"
-        print(f"error: {line}", file=sys.stderr)
-        sys.exit(2)
 
 
 def hydra_line(exc: BaseException) -> str:
@@ -315,7 +258,7 @@ def hydra_line(exc: BaseException) -> str:
             return f"{group}={name}: no such {group}; choose one of {', '.join(exc.options)}"
         return str(exc).strip().splitlines()[0]
     if isinstance(exc, OSError):  # writing the run folder's .hydra: name that folder
-        return _os_line(exc, _hydra_output_dir(exc))
+        return os_line(exc, _hydra_output_dir(exc))
     if isinstance(exc, OverrideParseException):
         return _override_line(exc.override, str(exc))
     cause = exc.__cause__
@@ -329,7 +272,7 @@ def hydra_line(exc: BaseException) -> str:
             return line + (
                 f"; did you mean {'.'.join(filter(None, [prefix, close[0]]))}?" if close else ""
             )
-    return _one_line(exc)
+    return one_line(exc)
 
 
 def _override_line(override: str, message: str) -> str:
@@ -351,27 +294,6 @@ def _hydra_output_dir(exc: BaseException) -> str | None:
             return str(tb.tb_frame.f_locals["output_dir"])
         tb = tb.tb_next
     return None
-
-
-def unknown_added_keys() -> str | None:
-    """The line refusing top-level keys that the command line added with ``+`` (``+out=DIR``
-    where the app has no ``out``), or None; config groups (``+experiment=...``) and keys inside
-    existing settings (``+trainer.max_steps=...``, ``+rows.NAME=...``) are the app's own."""
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
-    if not HydraConfig.initialized():
-        return None
-    groups = set(HydraConfig.get().runtime.choices)
-    parsed = OverridesParser.create().parse_overrides(list(HydraConfig.get().overrides.task))
-    added = [
-        o.key_or_group
-        for o in parsed
-        if o.is_add() and "." not in o.key_or_group and o.key_or_group not in groups
-    ]
-    if not added:
-        return None
-    return f"{added[0]}: not a setting of this app (added with +{added[0]}=, it would be ignored)"
 
 
 def in_multirun() -> bool:

@@ -1,14 +1,19 @@
-"""Where the configs live, the net registry, and the OmegaConf resolvers the configs use;
-imported by every Hydra entry point."""
+"""Where the configs live, the net registry, the OmegaConf resolvers the configs use, and
+:func:`app`, the Hydra entry point every app is (its composition errors in one line)."""
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
+import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from odmv.cli import WRAPPERS, hydra_line, note_existing_outputs, traceback_wanted
 from odmv.data.reference import view_channels as reference_channels
 from odmv.models.odmvnet import TABLE_I
 from odmv.rig import VIEW_SETS, check_views
@@ -19,6 +24,7 @@ from odmv.sim.shifts import KINDS
 #: tree rather than pkg://odmv.conf, which an editable install would resolve to its own
 #: checkout even for a worktree run by PYTHONPATH.
 CONF_DIR = str(Path(__file__).resolve().parent / "conf")
+T = TypeVar("T")
 
 
 def compose_app(name: str, overrides: list[str], hydra_cfg: bool = False) -> DictConfig:
@@ -220,3 +226,79 @@ for _name, _fn in (
     if not OmegaConf.has_resolver(_name):
         OmegaConf.register_new_resolver(_name, _fn)
 _register_options()
+
+
+# ------------------------------------------------------------------ the apps' entry point
+def app(config_name: str) -> Callable:
+    """``hydra.main`` of an entry point (config ``odmv/conf/<config_name>.yaml``), with Hydra's
+    own errors in one line and top-level keys added with ``+`` that the app does not have
+    refused (Hydra would add them, and the app would ignore them)."""
+    import hydra
+
+    def decorate(fn: Callable) -> Callable:
+        @functools.wraps(fn)
+        def checked(cfg):
+            added = unknown_added_keys()
+            if added:
+                if traceback_wanted():
+                    raise ValueError(added)
+                print(f"error: {added}", file=sys.stderr)
+                sys.exit(2)
+            return fn(cfg)
+
+        entry = hydra.main(version_base="1.3", config_path=CONF_DIR, config_name=config_name)
+        wrapped = entry(checked)
+
+        @functools.wraps(fn)
+        def main(*args, **kwargs):
+            from hydra._internal import utils
+
+            note_existing_outputs(sys.argv[1:])
+            original = utils.run_and_report
+            utils.run_and_report = _report_in_one_line
+            try:
+                return wrapped(*args, **kwargs)
+            finally:
+                utils.run_and_report = original
+
+        return main
+
+    return decorate
+
+
+def _report_in_one_line(func: Callable[[], T]) -> T:
+    """Hydra's ``run_and_report`` (it runs composition and the app), one line instead of its
+    option lists and tracebacks."""
+    try:
+        return func()
+    except Exception as exc:
+        if traceback_wanted():
+            raise
+        from hydra.errors import HydraException
+
+        line = hydra_line(exc)
+        if not isinstance(exc, (ValueError, OSError, HydraException, *WRAPPERS)):
+            line += f" ({type(exc).__name__}; HYDRA_FULL_ERROR=1 shows where)"
+        print(f"error: {line}", file=sys.stderr)
+        sys.exit(2)
+
+
+def unknown_added_keys() -> str | None:
+    """The line refusing top-level keys that the command line added with ``+`` (``+out=DIR``
+    where the app has no ``out``), or None; config groups (``+experiment=...``) and keys inside
+    existing settings (``+trainer.max_steps=...``, ``+rows.NAME=...``) are the app's own."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    if not HydraConfig.initialized():
+        return None
+    groups = set(HydraConfig.get().runtime.choices)
+    parsed = OverridesParser.create().parse_overrides(list(HydraConfig.get().overrides.task))
+    added = [
+        o.key_or_group
+        for o in parsed
+        if o.is_add() and "." not in o.key_or_group and o.key_or_group not in groups
+    ]
+    if not added:
+        return None
+    return f"{added[0]}: not a setting of this app (added with +{added[0]}=, it would be ignored)"

@@ -5,7 +5,6 @@ it against a constant-depth predictor, and say where the logs and figures are.""
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from datetime import datetime
@@ -16,9 +15,9 @@ from hydra import compose, initialize_config_dir
 from odmv.cli import run_app, tool
 from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.page.document import page_of
-from odmv.train import train
 from odmv.training.evaluation import evaluate, report
 from odmv.training.pace import free_threads
+from odmv.training.run import next_steps, train
 
 
 def main(argv: list[str]) -> int:
@@ -58,20 +57,6 @@ def main(argv: list[str]) -> int:
     print("\nwhat to run next, from this run:")
     print("\n".join(f"  {line}" for line in next_steps(out, Path(metrics["best_checkpoint"]))))
     return 0
-
-
-def next_steps(run: Path, ckpt: Path) -> list[str]:
-    """The commands that continue from a finished run folder, each with its real paths: a
-    prediction of its first test scene, evaluation, export to ONNX and a report."""
-    split = json.loads((run / "split.json").read_text())
-    scene = Path(split["root"]) / "scenes" / split["test"][0]
-    py = f"{tool('python')} -m"
-    return [
-        f"{py} odmv.predict ckpt_path={ckpt} input={scene} out={run / 'prediction'}",
-        f"{py} odmv.evaluate ckpt_path={ckpt} paths.output_dir={run / 'evaluation'}",
-        f"{py} odmv.export ckpt_path={ckpt} out={run / 'onnx'}",
-        f"{py} odmv.report runs=[{run}] out={run / 'report'}",
-    ]
 
 
 if __name__ == "__main__":

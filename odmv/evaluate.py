@@ -11,7 +11,8 @@ from __future__ import annotations
 
 from omegaconf import DictConfig
 
-from odmv.cli import app, run_app, tool
+from odmv.cli import run_app, tool
+from odmv.config import app
 from odmv.training.evaluation import evaluate, report
 
 

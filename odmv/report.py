@@ -17,7 +17,8 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from odmv.cli import app, run_app
+from odmv.cli import run_app
+from odmv.config import app
 from odmv.page.document import page_of
 from odmv.study.report import write_report
 

@@ -18,25 +18,20 @@ NAME: [override, ...], or ``study=NAME`` from conf/study/), summarized in ``stud
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 from omegaconf import DictConfig
 
-from odmv.cli import app, run_app
+from odmv.cli import run_app
+from odmv.config import app
 from odmv.study.runner import run_study
 
 #: how a row is trained: the training app, in a process of its own
 TRAIN = [sys.executable, "-m", "odmv.train"]
 
 
-def reproduce(cfg: DictConfig) -> Path:
-    """Run (or continue) the reproduction; returns the report folder."""
-    return run_study(cfg, TRAIN)
-
-
 @app("reproduce")
 def main(cfg: DictConfig) -> None:
-    run_app(lambda: reproduce(cfg))
+    run_app(lambda: run_study(cfg, TRAIN))
 
 
 if __name__ == "__main__":

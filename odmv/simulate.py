@@ -3,65 +3,23 @@
 ``shard=I/N`` renders one shard of it, ``merge=[DIR,...] out=PATH`` joins shards
 (odmv.sim.shards).
 
-A thin Hydra wrapper around :func:`odmv.sim.writer.simulate`; settings in conf/simulate.yaml.
+The workflow is :func:`odmv.data.twin.render_dataset`'s; settings in conf/simulate.yaml.
 """
 
 from __future__ import annotations
 
 import sys
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from odmv.cli import app, run_app
-from odmv.data.prior import prior_summary, summary_lines
-from odmv.io.manifest import load_manifest
-from odmv.io.validation import validate
-from odmv.sim.shards import merge, parse_shard, shard_ids
-from odmv.sim.writer import SimSettings, simulate
-
-
-def settings_from_config(cfg: DictConfig) -> SimSettings:
-    """Turn the ``simulate`` config into :class:`SimSettings`."""
-    return SimSettings.from_dict(OmegaConf.to_container(cfg, resolve=True))
-
-
-def run(cfg: DictConfig) -> int:
-    """Render (or merge shards), then validate; returns a process exit code."""
-    if cfg.get("merge"):
-        m = merge(list(cfg.merge), cfg.out)
-        print(f"{m.root}: {len(m.scenes)} scenes joined from {len(cfg.merge)} shard folders")
-        return check(m.root, cfg.validate)
-    s = settings_from_config(cfg)
-    shard = parse_shard(cfg.get("shard"))
-    rep = simulate(s, workers=cfg.workers, progress=cfg.progress, shard=shard)
-    rate = rep.rendered / rep.seconds if rep.seconds > 0 else float("nan")
-    part = "" if shard is None else f"shard {shard[0]}/{shard[1]}: "
-    print(
-        f"{s.out}: {part}rendered {rep.rendered} scenes ({rep.images} fringe images) in "
-        f"{rep.seconds:.1f} s ({rate:.2f} scenes/s), {rep.skipped} already complete"
-    )
-    ids = None if shard is None else shard_ids(load_manifest(s.out), shard)
-    code = check(s.out, cfg.validate, ids)
-    if not code and shard is None:  # what a net could recall instead of measure
-        print("\n".join(summary_lines(prior_summary(load_manifest(s.out)))))
-    return code
-
-
-def check(root, how: str, ids: list[str] | None = None) -> int:
-    """Validate (quick: headers; full: every pixel; off) the dataset or the scenes ``ids``."""
-    if how == "off":
-        return 0
-    report = validate(root, deep=how == "full", scene_ids=ids)
-    if not report.ok:
-        print("\n".join(report.problems))
-        return 1
-    print(report.summary(root))
-    return 0
+from odmv.cli import run_app
+from odmv.config import app
+from odmv.data.twin import render_dataset
 
 
 @app("simulate")
 def main(cfg: DictConfig) -> None:
-    code = run_app(lambda: run(cfg))
+    code = run_app(lambda: render_dataset(cfg))
     if code:
         sys.exit(code)
 

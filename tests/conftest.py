@@ -4,7 +4,7 @@ import pytest
 from helpers import compose_config, tiny_overrides
 
 from odmv.sim.writer import SimSettings, simulate
-from odmv.train import train
+from odmv.training.run import train
 
 
 @pytest.fixture(scope="session")

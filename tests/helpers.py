@@ -1,5 +1,7 @@
 """Small helpers shared by test modules (pytest puts tests/ on sys.path)."""
 
+import sys
+
 import numpy as np
 from hydra import compose, initialize_config_dir
 
@@ -10,6 +12,8 @@ from odmv.sim.render import RenderConfig, render_scene
 from odmv.sim.scenes import build_scene
 
 RIG = Rig()
+#: how a study trains its rows: the training app in a process of its own, as odmv.reproduce
+TRAIN = [sys.executable, "-m", "odmv.train"]
 CLEAN = RenderConfig(full_well_e=0.0, read_noise=0.0)  # noise-free
 FRINGE = FringeSpec()
 
@@ -54,8 +58,8 @@ def compose_config(name, overrides):
 def predicted_depth(model, scene, out):
     """odmv.predict of ``model`` (a checkpoint or ONNX file) on one ``scene`` into ``out``:
     the depth map it wrote (mm)."""
+    from odmv.deploy.predict import predict
     from odmv.io.exr import read_channel
-    from odmv.predict import predict
 
     cfg = compose_config(
         "predict", [f"ckpt_path={model}", f"input={scene}", f"out={out}", f"paths.output_dir={out}"]

@@ -16,7 +16,7 @@ from helpers import CLEAN, RIG, compose_config, tiny_overrides
 from omegaconf import OmegaConf
 
 from odmv.classical.geometry import coord_from_depth, phase_from_depth, triangulation_maps
-from odmv.classical.row import classical_depths
+from odmv.data.classical import classical_depths
 from odmv.data.dataset import DataError, check_spec, load_scene
 from odmv.io.manifest import (
     DEPTH_FILE,
@@ -30,8 +30,8 @@ from odmv.io.validation import validate
 from odmv.rig import VIEW_NAMES
 from odmv.sim.shifts import Shift
 from odmv.sim.writer import SimSettings, simulate
-from odmv.train import adapted_config, train
 from odmv.training.adaptation import StaleCalibrationError, check_calibration
+from odmv.training.configs import adapted_config
 from odmv.training.consistency import (
     SECOND_HARMONIC_SHARE,
     TARGET_DEFAULTS,
@@ -44,6 +44,7 @@ from odmv.training.consistency import (
 )
 from odmv.training.evaluation import evaluate
 from odmv.training.module import load_module
+from odmv.training.run import train
 
 SETTINGS = ConsistencySettings()
 
@@ -308,8 +309,8 @@ def test_the_calibration_check_measures_with_the_sinusoid_fit(base_run, unlabell
     fit in adaptation.window_px (the two-harmonic fit's are too unsteady to compare views)."""
     from dataclasses import replace
 
-    from odmv.train import build
     from odmv.training.adaptation import view_offsets
+    from odmv.training.run import build
 
     overrides = ["adapt=true", f"init_from={base_run}", f"root={unlabelled}",
                  f"paths.output_dir={tmp_path}", "adaptation.replay=0"]  # fmt: skip
@@ -500,9 +501,9 @@ def test_the_adapt_study_measures_adapted_and_supervised_nets(base_run, tmp_path
     fine-tunes run and scored, the table written, and a second call redoing nothing; an
     adaptation the check refuses (here at a zero threshold: a one-epoch net's depth explains
     no view) is recorded as refused."""
+    from helpers import TRAIN
     from omegaconf import OmegaConf
 
-    from odmv.reproduce import TRAIN
     from odmv.study.adapt import run_adaptation
 
     def study(name, shift, *overrides):

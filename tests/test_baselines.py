@@ -5,8 +5,8 @@ from hydra.utils import get_class, instantiate
 
 from odmv.config import CONF_DIR, baselines, compose_train, model_configs, nets
 from odmv.models import HNet, MTLNet, UNet, count_parameters
-from odmv.train import train
 from odmv.training.losses import OPTIONAL_TERMS, LossWeights, composite_loss
+from odmv.training.run import train
 
 # the baselines of the registry (conf/model/): each a class taking in_channels and base_width
 NETS = [get_class(model_configs()[name].model.net._target_) for name in baselines()]

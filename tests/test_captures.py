@@ -1,6 +1,6 @@
 """The classical method on fewer images per projector, down to the network's one image
-(odmv.classical.row.Capture): the full capture is the classical row, and fewer images cost accuracy
-or coverage, never correctness."""
+(odmv.classical.reconstruct.Capture): the full capture is the classical row, and fewer images
+cost accuracy or coverage, never correctness."""
 
 import dataclasses
 
@@ -9,12 +9,13 @@ import pytest
 from helpers import compose_config
 
 from odmv.classical.fringe import demodulate
-from odmv.classical.row import CAPTURES, Capture, classical_row
+from odmv.classical.reconstruct import CAPTURES, Capture
 from odmv.data.dataset import DataError
+from odmv.deploy.predict import predict
 from odmv.io.exr import read_channel, write_exr
 from odmv.io.manifest import FringeSpec
-from odmv.predict import predict
 from odmv.sim.writer import SimSettings, simulate
+from odmv.study.classical import classical_row
 
 
 @pytest.fixture(scope="module")

@@ -12,12 +12,13 @@ from helpers import compose_config, tiny_overrides
 from PIL import Image as PILImage
 
 from odmv.classical.sequences import PspOptions
-from odmv.convert import ConvertError, convert
+from odmv.importers.convert import convert
+from odmv.importers.formats import ConvertError
 from odmv.io.calibration import calibration_of
 from odmv.io.exr import read_channel
 from odmv.io.manifest import HEIGHT_QUANTITY, load_manifest
 from odmv.io.validation import validate
-from odmv.train import train
+from odmv.training.run import train
 
 RNG = np.random.default_rng(0)
 

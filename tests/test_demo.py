@@ -5,7 +5,7 @@ import shutil
 import subprocess
 from pathlib import Path
 
-from odmv.demo import next_steps
+from odmv.training.run import next_steps
 
 
 def test_the_commands_the_demo_prints_work_as_printed(trained, tmp_path):

@@ -14,15 +14,15 @@ from hydra.utils import instantiate
 
 from odmv.config import compose_train, model_configs
 from odmv.data.dataset import SampleSpec, load_scene
+from odmv.deploy.export import export
 from odmv.deploy.onnx import METADATA_KEY
 from odmv.deploy.quantize import INT8_OPS
-from odmv.export import export
 from odmv.io.manifest import load_manifest
 from odmv.models import ODMVNet, count_parameters
 from odmv.models.blocks import SeparableConv3d, set_separable
 from odmv.study.graphs import main as graphs_main
-from odmv.train import train
 from odmv.training.module import load_module
+from odmv.training.run import train
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 LIGHT = [n for n, c in model_configs().items() if c.get("model", {}).get("max_parameters")]

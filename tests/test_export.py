@@ -9,10 +9,10 @@ import torch
 from helpers import compose_config, tiny_overrides
 
 from odmv.deploy.onnx import METADATA_KEY, export_onnx
+from odmv.deploy.predict import predict
 from odmv.io.exr import read_channel
-from odmv.predict import predict
-from odmv.train import train
 from odmv.training.module import load_module
+from odmv.training.run import train
 
 
 @pytest.fixture(scope="module")

@@ -158,8 +158,8 @@ def test_simulate_on_a_full_or_read_only_disk_is_one_line(small_disk, read_only_
 
 # ---------------------------------------------------------------- outputs never overwrite inputs
 def test_predict_never_writes_into_a_dataset(trained, dataset_copy, tmp_path):
+    from odmv.deploy.predict import predict
     from odmv.io.guard import OverwriteError
-    from odmv.predict import predict
 
     ckpt = trained[1]["best_checkpoint"]
     truth = {p: p.read_bytes() for p in (dataset_copy / "scenes").glob("*/depth.exr")}
@@ -186,8 +186,8 @@ def _capture(tiny_dataset, folder):
 
 
 def test_predict_writes_into_a_capture_only_when_told(trained, tiny_dataset, tmp_path):
+    from odmv.deploy.predict import predict
     from odmv.io.guard import OverwriteError
-    from odmv.predict import predict
 
     capture = _capture(tiny_dataset, tmp_path / "capture")
     ckpt = trained[1]["best_checkpoint"]
@@ -200,7 +200,8 @@ def test_predict_writes_into_a_capture_only_when_told(trained, tiny_dataset, tmp
 
 
 def test_convert_refuses_an_output_inside_its_source_and_nan_fringes(tmp_path):
-    from odmv.convert import ConvertError, convert
+    from odmv.importers.convert import convert
+    from odmv.importers.formats import ConvertError
     from odmv.io.guard import OverwriteError
 
     src = tmp_path / "src"
@@ -235,7 +236,7 @@ def test_a_capture_without_a_usable_fringe_is_refused_naming_the_file(
     damage, extra, message, trained, tiny_dataset, tmp_path
 ):
     from odmv.data.dataset import DataError
-    from odmv.predict import predict
+    from odmv.deploy.predict import predict
 
     capture = _capture(tiny_dataset, tmp_path / "capture")
     if damage == "nan":
@@ -261,7 +262,7 @@ def test_a_capture_without_a_usable_fringe_is_refused_naming_the_file(
 def test_a_corrupted_fringe_is_named_by_training_and_the_validator(dataset_copy, tmp_path):
     from odmv.data.dataset import DataError
     from odmv.io.validation import validate
-    from odmv.train import train
+    from odmv.training.run import train
 
     path = dataset_copy / "scenes" / "000002" / "fringe" / "up_f2_s00.exr"
     a = read_channel(path, "Y")
@@ -276,7 +277,7 @@ def test_a_corrupted_fringe_is_named_by_training_and_the_validator(dataset_copy,
 
 # ---------------------------------------------------------------- a run folder is one run's
 def test_a_run_folder_belongs_to_one_run(trained, tiny_dataset, tmp_path):
-    from odmv.train import train
+    from odmv.training.run import train
     from odmv.training.runlock import FAILED, LOCK, RunFolderError
 
     finished = shutil.copytree(trained[0], tmp_path / "finished")

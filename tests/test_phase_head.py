@@ -19,10 +19,10 @@ from odmv.io.exr import read_channel
 from odmv.io.manifest import load_manifest
 from odmv.models.phase import lowest_order, view_depths
 from odmv.rig import VIEW_NAMES
-from odmv.train import train
 from odmv.training.evaluation import evaluate
 from odmv.training.losses import LossWeights, composite_loss
 from odmv.training.module import load_module
+from odmv.training.run import train
 
 
 @pytest.mark.parametrize("size", [(64, 64), (48, 80)])

@@ -11,10 +11,10 @@ import pytest
 from helpers import compose_config
 from PIL import Image as PILImage
 
+from odmv.deploy.predict import predict
 from odmv.io.calibration import calibration_of
 from odmv.io.exr import read_channel, write_exr
 from odmv.io.images import ImageError, fit_to, read_image
-from odmv.predict import predict
 
 VIEWS = ("right", "down", "left", "up")
 

@@ -15,8 +15,8 @@ from odmv.io.manifest import load_manifest
 from odmv.sim.pose import PoseError, PoseSettings, footprint_shares
 from odmv.sim.writer import SimSettings, simulate
 from odmv.study import prior
-from odmv.train import train
 from odmv.training.metrics import edge_bands, wrong_orders
+from odmv.training.run import train
 
 RANDOM = PoseSettings(kind="random", unsupported=0.5)
 
@@ -142,7 +142,7 @@ def test_the_probe_refuses_an_unfinished_run(tmp_path):
 
 
 def test_simulate_pose_random_from_the_command_line(tmp_path):
-    from odmv.simulate import run
+    from odmv.data.twin import render_dataset
 
     cfg = compose_config(
         "simulate",
@@ -155,6 +155,6 @@ def test_simulate_pose_random_from_the_command_line(tmp_path):
             "progress=false",
         ],  # fmt: skip
     )
-    assert run(cfg) == 0
+    assert render_dataset(cfg) == 0
     m = load_manifest(tmp_path / "d")
     assert all("pose" in s for s in m.scenes) and m.extra["simulation"]["pose"]["kind"] == "random"

@@ -10,11 +10,11 @@ from hydra import compose, initialize_config_dir
 from odmv.config import CONF_DIR
 from odmv.data import FPPDataModule
 from odmv.data.reference import network_input, reference_mode, reference_phase
+from odmv.deploy.predict import predict
 from odmv.io.exr import read_channel
-from odmv.predict import predict
 from odmv.rig import VIEW_NAMES
-from odmv.train import train
 from odmv.training.module import load_module
+from odmv.training.run import train
 
 
 def test_reference_phase_is_the_flat_planes_phase():

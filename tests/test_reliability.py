@@ -20,10 +20,10 @@ import odmv.sim.writer as writer
 from odmv.data.dataset import DataError
 from odmv.sim.scenes import SceneError
 from odmv.sim.writer import SimSettings, SimulationError, simulate
-from odmv.train import train
 from odmv.training.checkpoint import CheckpointError
 from odmv.training.evaluation import evaluate, report
 from odmv.training.module import load_module
+from odmv.training.run import train
 
 
 def _app(app, *args, cwd=None):

@@ -12,23 +12,24 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from helpers import RIG, render
+from helpers import RIG, TRAIN, render
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from odmv.classical.row import CAPTURES, classical_row
+from odmv.classical.reconstruct import CAPTURES
 from odmv.config import CONF_DIR, compose_train
 from odmv.config import contenders as contenders_of
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import footprint_from_depth, subset_masks
 from odmv.io.runfolder import HELDOUT
-from odmv.reproduce import reproduce
 from odmv.rig import VIEW_NAMES
+from odmv.study.classical import classical_row
 from odmv.study.runner import (
     RECORD,
     ReproduceError,
     _run_key,
     plan,
+    run_study,
     sweep_overrides,
     trained_key,
 )
@@ -315,7 +316,7 @@ def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, 
     overrides = _row_overrides(tiny_dataset, tmp_path, "widths.odmvnet=4", "model.net.blocks=1")
     runs, out = tmp_path / "runs", tmp_path / "report"
     cfg = _reproduce_cfg(overrides, runs, out)
-    reproduce(cfg)
+    run_study(cfg, TRAIN)
     metrics = sorted(runs.glob("*/metrics.json"))
     # S = 1..4, the classical row and its captures on fewer images (the last is the row itself)
     assert len(metrics) == 4 + 1 + len(CAPTURES) - 1
@@ -338,7 +339,7 @@ def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, 
                 held, indent=1
             ) + "\n"
     stamps = {p: p.stat().st_mtime_ns for p in metrics}
-    reproduce(cfg)  # everything is on disk: nothing is trained again
+    run_study(cfg, TRAIN)  # everything is on disk: nothing is trained again
     assert {p: p.stat().st_mtime_ns for p in metrics} == stamps
 
     # a row stopped before its end continues from its checkpoint in its own folder; a finished
@@ -354,7 +355,7 @@ def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, 
     trained_with.lrs.odmvnet *= 2  # ODMV-Net's rate, which the row's optimizer.lr reads
     OmegaConf.save(trained_with, edited)
     capsys.readouterr()
-    reproduce(cfg)
+    run_study(cfg, TRAIN)
     printed = capsys.readouterr().out
     assert f"continuing from {cut / 'checkpoints' / 'last.ckpt'}" in printed
     assert f"note: {changed.name} was trained with another configuration" in printed
@@ -367,13 +368,13 @@ def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, 
     again = OmegaConf.merge(cfg, {"retrain": ["odmvnet-s2-*"]})
     assert trained_key(changed) != today
     capsys.readouterr()
-    reproduce(again)
+    run_study(again, TRAIN)
     printed = capsys.readouterr().out
     assert "(3 done, 1 to train again)" in printed and f"[1/1] {changed.name}:" in printed
     assert trained_key(changed) == trained_key(out / "runs" / changed.name) == today
     assert json.loads((changed / RECORD).read_text())["key"] == today
     stamps = {p: p.stat().st_mtime_ns for p in metrics}
-    reproduce(again)
+    run_study(again, TRAIN)
     assert "(4 done, 0 to train again)" in capsys.readouterr().out
     assert {p: p.stat().st_mtime_ns for p in metrics} == stamps
 
@@ -391,7 +392,7 @@ def test_reproduce_writes_the_report_and_resumes_without_training(tiny_dataset, 
         fig.unlink()
     shutil.rmtree(runs)
     capsys.readouterr()
-    reproduce(cfg)
+    run_study(cfg, TRAIN)
     assert "4 runs (4 done)" in capsys.readouterr().out and not runs.exists()
     table = (out / "tables.md").read_text()
     for path in kept:
@@ -414,7 +415,7 @@ def test_a_study_of_its_own_rows_trains_each_once_and_tables_them(tiny_dataset, 
     # the rows the robustness pattern names are scored on shifted twins, and their records
     # keep the scores
     cfg.robustness = {"rows": ["l1-*"], "shifts": ["gamma:2"], "scenes": 2}
-    reproduce(cfg)
+    run_study(cfg, TRAIN)
     rob = json.loads((out / "runs" / "l1-seed0" / "robustness.json").read_text())
     assert list(rob) == ["nominal", "gamma:2"] and rob["gamma:2"]["test/mae_mm"] > 0
     assert not (runs / "plain-seed0" / "robustness.json").exists()
@@ -428,7 +429,7 @@ def test_a_study_of_its_own_rows_trains_each_once_and_tables_them(tiny_dataset, 
         m = json.loads((runs / folder / "metrics.json").read_text())
         assert [c.strip() for c in table[label][:2]] == ["1", f"{m['test/mae_mm']:.3f}"]
     capsys.readouterr()
-    reproduce(cfg)  # resumable like the tables: nothing is trained again
+    run_study(cfg, TRAIN)  # resumable like the tables: nothing is trained again
     assert "(2 done)" in capsys.readouterr().out
     with pytest.raises(ReproduceError, match="rows.bad"):
         plan("mini", [], [0], overrides, runs, rows={"bad": ["model=nonet"]})
@@ -487,7 +488,7 @@ def test_a_study_with_the_probe_and_the_classical_rows_keeps_both(tiny_dataset, 
         {"tables": [], "classical": True, "heldout": 0, "prior": True},
     )
     cfg.rows = {"plain": ["model=unet", "widths.unet=4"]}
-    reproduce(cfg)
+    run_study(cfg, TRAIN)
     probe = json.loads((out / "runs" / "plain-seed0" / "prior.json").read_text())
     assert [m["name"] for m in probe["moves"]] == ["none", "1 mm", "3 mm", "5 mm", "tilt 5 deg"]
     assert probe["classical"]["moves"][3]["ratio_mae_mm_interior"] < 1.5

@@ -10,12 +10,11 @@ from helpers import FRINGE, RIG, compose_config, render
 from PIL import Image as PILImage
 
 from odmv.classical import fringe as fpp
-from odmv.classical.sequences import PspOptions
-from odmv.data.dataset import DataError
+from odmv.classical.sequences import PspOptions, SequenceError
+from odmv.deploy.predict import predict
 from odmv.io.calibration import calibration_of
 from odmv.io.exr import read_exr
 from odmv.io.manifest import fringe_name
-from odmv.predict import predict
 
 STEPS = FRINGE.steps
 PERIODS = [RIG.projectors()["right"].width_px / p for p in FRINGE.periods_px]  # 1, 8, 64
@@ -93,7 +92,7 @@ def test_each_convention_decodes_to_the_projector_coordinate(
 
 def test_a_wrong_phase_origin_is_named_with_the_fix(twin, tmp_path):
     write_sequences(twin, tmp_path / "in", ["left"], 1, STEPS // 2, "{view}_f{f}_s{s:02d}", 0)
-    with pytest.raises(DataError, match=r"left: .* only .* psp.phase_origin_rad=3.14159"):
+    with pytest.raises(SequenceError, match=r"left: .* only .* psp.phase_origin_rad=3.14159"):
         decode(tmp_path / "in", tmp_path / "out")
     # a shift the other way is self-consistent: read with the wrong sign it decodes, without
     # complaint, to the mirrored coordinate (so only a calibration can tell it)

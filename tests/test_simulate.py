@@ -15,12 +15,12 @@ import trimesh
 from hydra import compose, initialize_config_dir
 
 from odmv.config import CONF_DIR
+from odmv.data.twin import render_dataset
 from odmv.io.exr import read_channel
 from odmv.io.manifest import load_manifest
 from odmv.io.validation import validate
 from odmv.sim.scenes import SceneError
 from odmv.sim.writer import SimulationError, rerender
-from odmv.simulate import run
 
 SMALL = ["resolution=64", "progress=false", "workers=1"]
 
@@ -42,7 +42,7 @@ def _same_tree(a: Path, b: Path) -> None:
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory):
     out = tmp_path_factory.mktemp("ref") / "ds"
-    assert run(_cfg(out, "scenes=4", "seed=3")) == 0
+    assert render_dataset(_cfg(out, "scenes=4", "seed=3")) == 0
     return out
 
 
@@ -58,7 +58,7 @@ def test_dataset_is_complete_and_valid(reference):
 
 def test_same_seed_gives_identical_bytes_with_any_worker_count(reference, tmp_path):
     out = tmp_path / "again"
-    assert run(_cfg(out, "scenes=4", "seed=3", "workers=2")) == 0
+    assert render_dataset(_cfg(out, "scenes=4", "seed=3", "workers=2")) == 0
     _same_tree(reference, out)
 
 
@@ -79,10 +79,11 @@ def test_shards_on_the_joblib_launcher_merge_into_the_same_bytes(reference, tmp_
         "000003",
     ]
     merged = tmp_path / "merged"
-    assert run(_cfg(merged, "merge=[shard0,shard1]".replace("shard", f"{tmp_path}/shard"))) == 0
+    joined = "merge=[shard0,shard1]".replace("shard", f"{tmp_path}/shard")
+    assert render_dataset(_cfg(merged, joined)) == 0
     _same_tree(reference, merged)
     with pytest.raises(SimulationError, match="2 scene\\(s\\) in none of the shards"):
-        run(_cfg(tmp_path / "half", f"merge=[{tmp_path}/shard0]"))
+        render_dataset(_cfg(tmp_path / "half", f"merge=[{tmp_path}/shard0]"))
 
 
 def test_parallel_render_leaves_the_callers_thread_settings(tmp_path, monkeypatch):
@@ -90,7 +91,7 @@ def test_parallel_render_leaves_the_callers_thread_settings(tmp_path, monkeypatc
     for key in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         monkeypatch.delenv(key, raising=False)
     monkeypatch.setenv("MKL_NUM_THREADS", "2")
-    assert run(_cfg(tmp_path / "ds", "scenes=2", "workers=2")) == 0
+    assert render_dataset(_cfg(tmp_path / "ds", "scenes=2", "workers=2")) == 0
     assert "OMP_NUM_THREADS" not in os.environ and "OPENBLAS_NUM_THREADS" not in os.environ
     assert os.environ["MKL_NUM_THREADS"] == "2"
 
@@ -106,7 +107,7 @@ def test_scene_json_re_renders_exactly(reference):
 
 def test_training_mode_writes_only_the_network_image(tmp_path):
     out = tmp_path / "train"
-    assert run(_cfg(out, "scenes=2", "images=training")) == 0
+    assert render_dataset(_cfg(out, "scenes=2", "images=training")) == 0
     names = sorted(p.name for p in (out / "scenes" / "000000" / "fringe").iterdir())
     assert names == sorted(f"{v}_f2_s00.exr" for v in ("right", "down", "left", "up"))
     assert validate(out).ok
@@ -119,7 +120,7 @@ def test_training_mode_writes_only_the_network_image(tmp_path):
     manifest.write_text(json.dumps(meta, indent=1) + "\n")
     (problem,) = validate(out).problems
     assert "fringe.uniform is true, but images=training stores no uniform images" in problem
-    assert run(_cfg(out, "scenes=2", "images=training")) == 0
+    assert render_dataset(_cfg(out, "scenes=2", "images=training")) == 0
     assert json.loads(manifest.read_text())["fringe"]["uniform"] is False and validate(out).ok
 
 
@@ -144,15 +145,15 @@ def test_killed_run_resumes_to_the_same_result(tmp_path):
     proc.wait()
     complete = [p for p in scenes.iterdir() if not p.name.startswith(".")]
     assert 1 <= len(complete) < 5, "the run should have been killed part-way"
-    assert run(_cfg(out, *settings)) == 0
+    assert render_dataset(_cfg(out, *settings)) == 0
     assert not [p for p in scenes.iterdir() if p.name.startswith(".")]
-    assert run(_cfg(tmp_path / "clean", *settings)) == 0
+    assert render_dataset(_cfg(tmp_path / "clean", *settings)) == 0
     _same_tree(tmp_path / "clean", out)
 
 
 def test_other_settings_in_same_folder_are_refused(reference):
     with pytest.raises(SimulationError, match="other settings"):
-        run(_cfg(reference, "scenes=4", "seed=4"))
+        render_dataset(_cfg(reference, "scenes=4", "seed=4"))
 
 
 def test_mesh_folder_is_used_and_bad_mesh_named(tmp_path):
@@ -160,13 +161,13 @@ def test_mesh_folder_is_used_and_bad_mesh_named(tmp_path):
     meshes.mkdir()
     trimesh.creation.annulus(r_min=1, r_max=3, height=4).export(meshes / "ring.stl")
     out = tmp_path / "free"
-    assert run(_cfg(out, "scenes=3", "family=freeform", f"mesh_dir={meshes}")) == 0
+    assert render_dataset(_cfg(out, "scenes=3", "family=freeform", f"mesh_dir={meshes}")) == 0
     specs = [(out / "scenes" / f"00000{i}" / "scene.json").read_text() for i in range(3)]
     assert any("ring.stl" in s for s in specs)
     bad = meshes / "broken.stl"
     bad.write_text("solid nothing\nthis is not a facet\n")
     with pytest.raises(SceneError, match="broken.stl: cannot read mesh") as e:
-        run(_cfg(tmp_path / "bad", "scenes=8", "family=freeform", f"mesh_dir={meshes}"))
+        render_dataset(_cfg(tmp_path / "bad", "scenes=8", "family=freeform", f"mesh_dir={meshes}"))
     assert "\n" not in str(e.value)
 
 

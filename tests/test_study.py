@@ -151,7 +151,7 @@ def test_robustness_declares_views_missing_to_a_view_dropout_net(trained, tiny_d
 
     from odmv.sim.shifts import Shift
     from odmv.study import robustness
-    from odmv.train import train
+    from odmv.training.run import train
 
     base_run, _ = trained
     run = tmp_path / "dropout"

@@ -17,12 +17,12 @@ import torch
 from helpers import compose_config, tiny_overrides
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from odmv.deploy.predict import predict
 from odmv.io.exr import read_channel, write_exr
 from odmv.io.manifest import FringeSpec
-from odmv.predict import predict
-from odmv.train import train
 from odmv.training.evaluation import evaluate, report
 from odmv.training.module import load_module
+from odmv.training.run import train
 
 
 def test_train_writes_checkpoints_metrics_and_tensorboard(trained):

@@ -13,8 +13,9 @@ from odmv.io.manifest import (
     Manifest,
     load_manifest,
 )
+from odmv.io.validation import validate
 from odmv.rig import Rig
-from odmv.validate import main, validate
+from odmv.validate import main
 
 VIEWS = ("right", "down", "left", "up")
 

@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from odmv.deploy.predict import predict
 from odmv.io.runfolder import PREDICTIONS
 from odmv.page.document import markdown_html, page_of
 from odmv.page.plots import signed_log
 from odmv.page.sources import PageError, read
-from odmv.predict import predict
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 #: put at the top of the page under test: records script errors and every resource the page

@@ -11,14 +11,14 @@ from helpers import compose_config, tiny_overrides
 from odmv.data.dataset import DataError
 from odmv.data.views import ViewDropout, drop, with_availability
 from odmv.deploy.inference import load_predictor
+from odmv.deploy.predict import predict
 from odmv.io.exr import read_channel
 from odmv.models import ODMVNet
 from odmv.models.blocks import split_availability
-from odmv.predict import predict
 from odmv.rig import Rig
-from odmv.train import train
 from odmv.training.evaluation import evaluate
 from odmv.training.losses import LossWeights, composite_loss
+from odmv.training.run import train
 
 
 def _net(ablation, **kw):

@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 
 from odmv.classical.fringe import decode_phase
-from odmv.data.dataset import DataError
 from odmv.io.images import find_view_image
 
 #: The twin's sequences: 1, 8 and 64 periods across the projector's 1920 px (odmv.io.manifest).
@@ -30,6 +29,10 @@ MIN_PIXELS = 100
 #: mirrored coordinate (the axis length minus the true one) whose orders agree, so it cannot be
 #: told from the images alone.
 ORIGINS_TRIED = [k * np.pi / 2 for k in range(4)]
+
+
+class SequenceError(ValueError):
+    """Sequences that cannot be read or decoded as named: one line naming the folder."""
 
 
 @dataclass(frozen=True)
@@ -127,12 +130,12 @@ def count_steps(folder: Path, options: PspOptions, view: str) -> int:
     if options.steps is not None:
         return options.steps
     if "{n" in options.pattern:
-        raise DataError(f"{folder}: psp.pattern numbers images with n; give psp.steps")
+        raise SequenceError(f"{folder}: psp.pattern numbers images with n; give psp.steps")
     steps = 0
     while find_view_image(folder, options.stem(view, 0, steps, 1)):
         steps += 1
     if steps < 3:
-        raise DataError(
+        raise SequenceError(
             f"{folder}: {steps} image(s) named like {options.stem(view, 0, 0, 1)}; phase "
             "shifting needs at least 3 per frequency (check psp.pattern and psp.first_index)"
         )
@@ -181,7 +184,7 @@ def check_conventions(stack: np.ndarray, options: PspOptions, where: str) -> Non
         if shares[best] >= MIN_AGREEMENT
         else "no first phase fixes it: check psp.periods, psp.steps and the images' order"
     )
-    raise DataError(
+    raise SequenceError(
         f"{where}: consecutive frequencies give the same fringe order on only {share:.1%} of "
         f"the modulated pixels (shift_sign={options.shift_sign}, phase_origin_rad="
         f"{options.phase_origin_rad:g}, periods {list(options.frequencies)}); {hint}"

@@ -17,7 +17,8 @@ import plotly.graph_objects as go
 
 from odmv.io.atomic import write_text
 from odmv.page import plots
-from odmv.page.sources import NO_TRUTH_BIT, SHADOWED_BIT, Page, Scene, read
+from odmv.page.sources import Page, read
+from odmv.study.scenes import NO_TRUTH_BIT, SHADOWED_BIT, Scene
 
 PAGE = "page.html"  # a folder's own page
 

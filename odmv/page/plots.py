@@ -12,9 +12,9 @@ from plotly.colors import qualitative
 from plotly.subplots import make_subplots
 
 from odmv.data.subsets import edge_band
-from odmv.page.sources import SHADOWED_BIT, Scene
 from odmv.study.results import Cell
 from odmv.study.robustness import nets_scale, off_scale_note, ratio_curves, strength_unit
+from odmv.study.scenes import SHADOWED_BIT, Scene
 from odmv.study.tables import TITLES
 from odmv.training.metrics import HEIGHT_BANDS_MM
 

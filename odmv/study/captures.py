@@ -4,9 +4,10 @@ dataset's test split, with networks' runs beside it at one image.
 
     python -m odmv.study captures DATASET --out DIR [--work DIR] ['LABEL=GLOB' ...]
 
-DATASET must hold the full sequences (images=full). Each capture of odmv.classical.row.CAPTURES is
-scored like a trained run in ``--work`` (default outputs/captures/<dataset>; kept once scored)
-and its record (``metrics.json``, ``test_scenes.csv``) copied to ``DIR/runs/<capture>/``; each
+DATASET must hold the full sequences (images=full). Each capture of
+odmv.classical.reconstruct.CAPTURES is scored like a trained run in ``--work`` (default
+outputs/captures/<dataset>; kept once scored) and its record (``metrics.json``,
+``test_scenes.csv``) copied to ``DIR/runs/<capture>/``; each
 ``LABEL=GLOB`` adds the run folders it matches as one point at one image per projector, the
 mean over their seeds, with their MAE on the pixels the full classical capture reconstructs
 where their ``test_predictions.npz`` holds every test scene (a run folder's does; a record's
@@ -25,10 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
-from odmv.classical.row import CAPTURES, classical_row
+from odmv.classical.reconstruct import CAPTURES
 from odmv.data.dataset import DataError
 from odmv.io.atomic import write_atomic, write_csv, write_text
 from odmv.io.runfolder import METRICS, PREDICTIONS, SCENES_CSV
+from odmv.study.classical import classical_row
 from odmv.study.records import load_predictions, run_groups
 
 COLUMNS = ("mae_mm", "mae_mm_shadowed", "mae_mm_h8_up", "coverage", "mae_mm_classical_pixels")

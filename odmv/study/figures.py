@@ -12,6 +12,7 @@ import numpy as np
 
 from odmv.io.runfolder import PREDICTIONS, SCENES_CSV, recorded_dataset
 from odmv.study.results import Cell, Run
+from odmv.study.scenes import scene_inputs
 from odmv.study.tables import TITLES
 
 matplotlib.use("Agg")
@@ -61,8 +62,6 @@ def kept_predictions(run: Run) -> dict[str, tuple[np.ndarray, np.ndarray]] | Non
 
 def _fringes(dataset: str, sid: str, shape: tuple[int, int]) -> tuple[list[str], list] | None:
     """Every view's input fringe of one scene, from the dataset (None if it is not there)."""
-    from odmv.page.sources import scene_inputs  # (the pages read scenes as Fig. 6 does)
-
     found = scene_inputs(Path(dataset), sid, shape)
     return (found.views, list(found.fringes.values())) if found else None
 

@@ -27,11 +27,11 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
-from odmv.classical.row import classical_row
 from odmv.config import settings_hash
 from odmv.io.atomic import write_json, write_text
 from odmv.io.manifest import MANIFEST
 from odmv.io.runfolder import METRICS, PRIOR, recorded_dataset
+from odmv.study.classical import classical_row
 from odmv.study.heldout import HeldoutError, evaluate_on, twin_dataset, twin_settings
 from odmv.study.records import run_data
 from odmv.training.checkpoint import CheckpointError

@@ -149,7 +149,7 @@ def score_classical(
     source: Path, shifts: list[Shift], scenes: int = SCENES, resolution=None
 ) -> dict:
     """The classical method's scores (nominal calibration) on the same sets."""
-    from odmv.classical.row import classical_row
+    from odmv.study.classical import classical_row
 
     scores = {}
     for shift in [NOMINAL_SHIFT, *shifts]:

@@ -21,7 +21,7 @@ import numpy as np
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig, OmegaConf
 
-from odmv.classical.row import CAPTURES, classical_row
+from odmv.classical.reconstruct import CAPTURES
 from odmv.cli import task_overrides
 from odmv.config import compose_train
 from odmv.io.atomic import write_json, write_text
@@ -38,6 +38,7 @@ from odmv.io.runfolder import (
 )
 from odmv.sim.shifts import parse_shift
 from odmv.study.adapt import run_adaptation
+from odmv.study.classical import classical_row
 from odmv.study.figures import FIGURE_SCENES, pick_scenes
 from odmv.study.heldout import HeldoutError, score_heldout
 from odmv.study.prior import moves, prior_section, probe_run

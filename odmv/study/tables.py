@@ -24,7 +24,7 @@ class Row:
     width: int | None = None  # a row of one base width; None: the runs no such row claims
     improvement_pct: float | None = None  # ODMV-Net's MAE reduction on this row, the paper's
     head: str = "depth"  # the paper's rows regress depth; head=phase runs are rows of their own
-    capture: str | None = None  # a classical row on fewer images (odmv.classical.row.Capture.key)
+    capture: str | None = None  # a classical row on fewer images (reconstruct.Capture.key)
 
 
 #: Table I's cumulative module rows (odmv.models.odmvnet.TABLE_I): key, label and the paper's
@@ -32,11 +32,12 @@ class Row:
 ABLATION = tuple((row.key, row.label, row.paper) for row in TABLE_I)
 PAPER_ODMV = ABLATION[-1][2]  # the full ODMV-Net at S = 4
 VIEWS = ("S=1 (right)", "S=2 (right, up)", "S=3 (right, left, up)", "S=4 (all)")
-#: the classical reference (odmv.classical.row) and its place among Table II's registry rows
+#: the classical reference (odmv.study.classical) and its place among Table II's registry rows
 CLASSICAL = Row("table2", "Classical phase shifting (4 projectors)", "classical", 4)
 CLASSICAL_ORDER = 6
 #: the classical method on the one image per projector a network sees (single-shot Fourier
-#: transform profilometry, odmv.classical.row.CAPTURES[0]), just below the full classical row
+#: transform profilometry, odmv.classical.reconstruct.CAPTURES[0]), just below the full
+#: classical row
 CLASSICAL_ONE = Row(
     "table2", "Classical, one image per projector (Fourier transform)", "classical", 4,
     capture="1x1",

@@ -8,7 +8,7 @@ import resource
 import time
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from odmv.config import CONF_DIR  # (and registers the config resolvers)
 from odmv.data.normalize import Normalization
@@ -44,13 +44,7 @@ def build_module(cfg: DictConfig) -> FPPModule:
         1.0,
         cfg.data.depth_target,
     )
-    return FPPModule(
-        net_cfg=OmegaConf.to_container(cfg.model.net, resolve=True),
-        norm=norm.to_dict(),
-        views=list(cfg.data.views),
-        loss=OmegaConf.to_container(cfg.loss, resolve=True),
-        data_cfg=OmegaConf.to_container(cfg.data, resolve=True),
-    )
+    return FPPModule.from_config(cfg, norm.to_dict(), list(cfg.data.views))
 
 
 def synthetic_batch(cfg: DictConfig, batch: int, device: torch.device) -> dict:

@@ -20,6 +20,7 @@ import torch
 from lightning.pytorch.loggers import TensorBoardLogger
 from lightning.pytorch.plugins.precision import MixedPrecision
 from lightning.pytorch.utilities import rank_zero_only
+from omegaconf import OmegaConf
 
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import MASKS
@@ -28,6 +29,7 @@ from odmv.io.runfolder import PREDICTIONS, SCENES_CSV, recorded_dataset
 from odmv.models.blocks import split_availability
 from odmv.models.phase import fuse, has_phase_head
 from odmv.training.checkpoint import CheckpointError, check_weights, read_checkpoint
+from odmv.training.configs import adapt_settings, data_config, distill_settings, run_summary
 from odmv.training.consistency import ConsistencySettings, consistency_loss
 from odmv.training.distill import DistillSettings, distill_terms
 from odmv.training.losses import LossWeights, composite_loss, depth_loss
@@ -142,6 +144,26 @@ class FPPModule(L.LightningModule):
         self._predictions: dict[str, list] = {}
         # training time across resumes: what the checkpoint fitted from had spent, plus this fit
         self._seconds_before, self._fit_started = 0.0, None
+
+    @classmethod
+    def from_config(cls, cfg, norm: dict | None = None, views: list[str] | None = None):
+        """The module a composed train config trains (its net, loss, optimizer, schedule,
+        fine-tune and teacher); the normalization and views come from the data at setup
+        unless given."""
+        return cls(
+            net_cfg=OmegaConf.to_container(cfg.model.net, resolve=True),
+            norm=norm,
+            views=views,
+            loss=OmegaConf.to_container(cfg.loss, resolve=True),
+            optimizer=OmegaConf.to_container(cfg.optimizer, resolve=True),
+            scheduler=OmegaConf.to_container(cfg.scheduler, resolve=True),
+            log_images=cfg.log_images,
+            data_cfg=data_config(cfg),
+            run_info=run_summary(cfg),
+            compile=cfg.get("compile"),
+            adapt=adapt_settings(cfg),
+            distill=distill_settings(cfg),
+        )
 
     def setup(self, stage: str) -> None:
         """Take units and views from the data module; they are saved with the checkpoint."""

@@ -1,17 +1,18 @@
-"""Import formats: each a reader that yields a source's samples (:class:`Sample`), in one
-table, :data:`FORMATS` (``python -m odmv.convert format=NAME``; what each reads: that app's
-docstring and docs/dataset.md). A new format is a reader and its entry in the table."""
+"""Import formats: each a reader that yields a source's samples (:class:`Sample`) and its one
+entry (:class:`Importer`) in :data:`FORMATS` (``python -m odmv.convert format=NAME``; what
+each reads: its reader's docstring and docs/dataset.md)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
 from odmv.classical.fringe import wrapped_phase
-from odmv.classical.row import reconstruct_scene
+from odmv.classical.reconstruct import reconstruct_scene
 from odmv.classical.sequences import PspOptions, read_stack, views_in
 from odmv.io.exr import read_exr
 from odmv.io.images import find_view_image, read_image
@@ -265,13 +266,37 @@ def sequence_scenes(src: Path, calibration, psp: PspOptions) -> tuple[list[Path]
     return scenes, views
 
 
-#: every import format: name (convert format=NAME) -> the reader that yields its samples
+@dataclass(frozen=True)
+class Importer:
+    """One import format: the reader that yields its samples and what the writer does with
+    them. ``quantity``: what its depth maps hold (depth, or height above the reference plane;
+    odmv.io.manifest.Manifest.quantity). ``crop``: sides cropped centrally to multiples of 16
+    (not where a calibration describes the full size). ``rig``: its reader takes the rig's
+    calibration and the sequences' names and conventions (``calibration``, ``psp``), and the
+    dataset keeps the full sequences (``images: full``)."""
+
+    reader: Callable[..., Iterator[Sample]]
+    reads: str  # what a source holds, for a line of help
+    quantity: str = "depth"
+    crop: bool = True
+    rig: bool = False
+
+
+#: every import format: name (``convert format=NAME``) -> its entry; a new format is a reader
+#: and one entry here (docs/layout.md)
 FORMATS = {
-    "nguyen2020": nguyen2020,
-    "uhrnet": uhrnet,
-    "fppmlbench": fppmlbench,
-    "folder": folder,
-    "sequences": sequences,
+    "nguyen2020": Importer(
+        nguyen2020, "X_{train,test}_fringe.npy, Z_{train,test}.npy (N x H x W x 1), depth mm"
+    ),
+    "uhrnet": Importer(
+        uhrnet, "f1_80.npy, Z.npy (N x H x W [x 1]) or one sample's .npy, height mm", "height"
+    ),
+    "fppmlbench": Importer(fppmlbench, "PNG fringes and MAT depth maps of the same name"),
+    "folder": Importer(folder, "SRC/<scene>/<view>.<ext> images and depth.<exr|npy|png>"),
+    "sequences": Importer(
+        sequences,
+        "SRC/<scene>/ phase-shifting sequences, with the rig's calibration",
+        crop=False,
+        rig=True,
+    ),  # fmt: skip
 }
-#: What each format's depth maps hold (odmv.io.manifest.Manifest.quantity).
-QUANTITY = {"uhrnet": "height"}

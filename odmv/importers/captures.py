@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from odmv.classical.row import twin_options
+from odmv.classical.reconstruct import twin_options
 from odmv.classical.sequences import PspOptions, count_steps, read_stack, views_in
 from odmv.data.dataset import DataError, SampleSpec, check_spec, load_scene
 from odmv.io.images import IMAGE_EXTENSIONS, find_view_image, fit_to, intensity_problem, read_image

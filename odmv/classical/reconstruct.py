@@ -1,25 +1,15 @@
-"""The classical reference as a model row: phase shifting on every projector, triangulation,
-fusion over the projectors that lit each pixel (odmv.classical.fringe), scored like a network.
-
-``classical_row(root, out_dir)`` reads the full sequences of the test scenes, writes the same
-files a trained run's test writes (``metrics.json``, ``test_scenes.csv``,
-``test_predictions.npz``; NaN where nothing is reconstructed) and returns the metrics. Errors are
-over the reconstructed pixels of each subset; ``coverage`` is the share of the subset's valid
-pixels that is reconstructed.
-
-A :class:`Capture` makes the row see fewer images per projector, down to the one image a
-network sees (single-shot Fourier-transform profilometry): what learning adds is measured
-against what the classical method does with the same images (:data:`CAPTURES`).
-"""
+"""The classical pipeline on one scene's images, without a net: phase shifting on every
+projector, triangulation, fusion over the projectors that lit each pixel
+(odmv.classical.fringe); and with fewer images per projector, down to the one image a network
+sees (single-shot Fourier-transform profilometry), as a :class:`Capture` says
+(:data:`CAPTURES`). A dataset's scenes reconstructed: odmv.data.classical; scored as a model
+row: odmv.study.classical."""
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
-import torch
 
 from odmv.classical.fringe import (
     anchor_to_plane,
@@ -29,19 +19,10 @@ from odmv.classical.fringe import (
     period_in_camera_px,
     triangulate_depth,
     unwrap_spatial,
-    view_deviations_mm,
     wrapped_phase,
 )
 from odmv.classical.geometry import triangulation_maps
-from odmv.classical.sequences import PspOptions
-from odmv.data.dataset import DataError, check_spec, load_scene, load_stack, split_scenes
-from odmv.data.subsets import MASKS
-from odmv.io.atomic import write_json
-from odmv.io.manifest import Manifest, load_manifest
-from odmv.io.runfolder import METRICS, portable_record
-from odmv.training.metrics import SUBSETS, DepthErrors, per_image_subset_errors, subset_suffix
-from odmv.training.module import subset_masks, write_test_outputs
-from odmv.training.provenance import provenance
+from odmv.classical.sequences import PspOptions, SequenceError
 
 #: Settings of the classical pipeline (documented in docs/reproduce.md).
 MIN_PERIOD_CAMERA_PX = 3.0  # finer sequences alias in the camera and are left out
@@ -116,7 +97,7 @@ def _resolved(camera, proj, options: PspOptions) -> tuple[list[float], list[int]
         if period_in_camera_px(p, camera, proj) >= MIN_PERIOD_CAMERA_PX
     ]
     if not used or max(periods_px[i] for i in used) < max(periods_px):
-        raise DataError(
+        raise SequenceError(
             f"classical: the camera does not resolve the coarsest fringes "
             f"(periods {list(options.frequencies)} across the projector)"
         )
@@ -136,10 +117,10 @@ def view_depths(decoded: list[DecodedView], camera, projectors) -> np.ndarray:
 def fused_depth(decoded: list[DecodedView], camera, projectors) -> np.ndarray:
     """Views decoded with the rig (:func:`decode_views`) -> depth (mm, NaN where rejected):
     each view triangulated, then fused over the views that agree."""
-    return _fused(decoded, view_depths(decoded, camera, projectors))
+    return fused_views(decoded, view_depths(decoded, camera, projectors))
 
 
-def _fused(decoded: list[DecodedView], depths: np.ndarray) -> np.ndarray:
+def fused_views(decoded: list[DecodedView], depths: np.ndarray) -> np.ndarray:
     """The views' triangulated ``depths`` (:func:`view_depths`) fused over those that agree."""
     modulations = np.stack([view.modulation for view in decoded])
     return fuse_views(depths, modulations, TOLERANCE_MM, EDGE_MM)
@@ -150,39 +131,6 @@ def reconstruct_scene(stack: np.ndarray, camera, projectors, options: PspOptions
     the projectors ``projectors`` (a list) -> depth (mm, NaN where rejected), using the
     sequences whose period the camera resolves."""
     return fused_depth(decode_views(stack, options, camera, projectors), camera, projectors)
-
-
-def classical_depths(
-    m: Manifest, ids: list[str], size: tuple[int, int]
-) -> tuple[dict, dict[str, float]]:
-    """Each scene of ``ids`` of the dataset of manifest ``m`` (with its full sequences)
-    reconstructed classically from its images resized to ``size`` (H, W) -> {scene id: depth
-    (mm, H x W, NaN where nothing is reconstructed)}, and each projector's mean deviation (mm)
-    from the views' per-pixel median over those scenes (:func:`view_deviations_mm`; by view,
-    those that share pixels with another): a calibration that describes the rig leaves them
-    near zero whatever the optics, a projector moved since calibrating shifts its own. Reads
-    no labels: a user's captures will do."""
-    if m.images != "full":
-        raise DataError(
-            f"{m.root}: the classical reconstruction needs the full phase-shifting sequences "
-            f"(images=full), not images={m.images}"
-        )
-    h, w = size
-    cam = m.rig.camera_at(w, h)
-    projectors = [m.rig.projectors()[v] for v in m.views]
-    n_f, n_s = len(m.fringe.periods_px), m.fringe.steps
-    coarse_first = np.argsort(m.fringe.periods_px)[::-1]
-    options = twin_options(m)
-    depths, sums, counts = {}, np.zeros(len(m.views)), np.zeros(len(m.views))
-    for sid in ids:
-        stack = load_stack(m, sid, m.views, h, w).reshape(len(m.views), n_f, n_s, h, w)
-        decoded = decode_views(stack[:, coarse_first], options, cam, projectors)
-        per_view = view_depths(decoded, cam, projectors)
-        depths[sid] = _fused(decoded, per_view)
-        s, c = view_deviations_mm(per_view)
-        sums, counts = sums + s, counts + c
-    offsets = {v: float(s / c) for v, s, c in zip(m.views, sums, counts, strict=True) if c}
-    return depths, offsets
 
 
 @dataclass(frozen=True)
@@ -241,7 +189,9 @@ def capture_depth(stack, m, capture: Capture, camera, projectors, views) -> np.n
     sequences (V, F, N, H, W in the manifest's frequency order)."""
     n_steps = m.fringe.steps
     if n_steps % capture.steps:
-        raise DataError(f"classical: {capture.steps} steps do not divide the dataset's {n_steps}")
+        raise SequenceError(
+            f"classical: {capture.steps} steps do not divide the dataset's {n_steps}"
+        )
     f_net = m.fringe.resolve_frequency(m.fringe.train_frequency)
     coarse = int(np.argmax(m.fringe.periods_px))
     period, step0 = m.fringe.periods_px[f_net], m.fringe.train_step
@@ -308,92 +258,3 @@ def _anchored(dphi, mod, ref, period_px):
 def _triangulated(u, ok, camera, proj) -> np.ndarray:
     depth = triangulate_depth(np.nan_to_num(u), camera, proj)
     return np.where(ok & np.isfinite(depth), depth, np.nan)
-
-
-def classical_row(
-    root: str | Path,
-    out_dir: str | Path,
-    resolution=None,
-    split: str = "test",
-    capture: Capture | None = None,
-) -> dict:
-    """Reconstruct every scene of ``split`` of the dataset at ``root`` classically, from the
-    images resized to ``resolution`` as the networks see them (None: as stored); write and
-    return its metrics (keys like a trained run's: ``test/mae_mm``, ..., ``test/coverage``).
-    ``capture``: the images decoded per projector (None: every step of every frequency the
-    camera resolves)."""
-    t0 = time.perf_counter()
-    m = load_manifest(root)
-    if m.images != "full":
-        raise DataError(f"{m.root}: the classical row needs the full sequences (images=full)")
-    size = [m.height_px, m.width_px] if resolution is None else resolution
-    spec = check_spec(m, m.views, size, None, None, with_stacks=True)
-    h, w = spec.height_px, spec.width_px
-    ids = split_scenes(m, None, 0)[split]
-    cam = m.rig.camera_at(w, h)
-    projectors = [m.rig.projectors()[v] for v in m.views]
-    n_f, n_s = len(m.fringe.periods_px), m.fringe.steps
-    options = twin_options(m)
-    coarse_first = np.argsort(m.fringe.periods_px)[::-1]
-    families = {s["id"]: str(s.get("family", "")) for s in m.scenes}
-    metrics = {k: DepthErrors() for k in SUBSETS}
-    covered = {k: [0.0, 0.0] for k in SUBSETS}
-    rows, preds = [], {"scene_id": [], "pred_mm": [], "depth_mm": []}
-    for sid in ids:
-        raw = load_scene(m, sid, spec)
-        stack = raw["fringe_stack"].reshape(len(m.views), n_f, n_s, h, w)
-        if capture is None:
-            depth = reconstruct_scene(stack[:, coarse_first], cam, projectors, options)
-        else:
-            depth = capture_depth(stack, m, capture, cam, projectors, list(m.views))
-        gt = torch.from_numpy(raw["depth_mm"][None].astype(np.float32))
-        pred = torch.from_numpy(np.nan_to_num(depth, nan=0.0)[None, None].astype(np.float32))
-        ok = torch.from_numpy(np.isfinite(depth)[None, None]).float()
-        subsets = {k: torch.from_numpy(raw[k][None]).float() for k in MASKS}
-        masks = subset_masks({"valid": torch.isfinite(gt).float(), "depth_mm": gt} | subsets)
-        reconstructed = {k: mask * ok for k, mask in masks.items()}
-        row = {"scene": sid, "family": families.get(sid, "")}
-        for k, v in per_image_subset_errors(pred, gt, reconstructed).items():
-            if not k.startswith("pixels"):
-                row[k] = float(v[0])
-        for subset, mask in masks.items():
-            # each subset's pixels, as a trained run's file counts them (the report picks the
-            # figures' scenes by them)
-            row[f"pixels{subset_suffix(subset)}"] = float(mask.sum())
-            metrics[subset].update(pred, gt, reconstructed[subset])
-            covered[subset][0] += float(reconstructed[subset].sum())
-            covered[subset][1] += float(mask.sum())
-            row[f"coverage{subset_suffix(subset)}"] = float(reconstructed[subset].sum()) / max(
-                float(mask.sum()), 1.0
-            )
-        rows.append(row)
-        preds["scene_id"].append([sid])
-        preds["pred_mm"].append(depth[None].astype(np.float32))
-        preds["depth_mm"].append(raw["depth_mm"].astype(np.float32))
-    if not ids:
-        raise DataError(f"{m.root}: the {split} split is empty")
-    out = {}
-    valid_pixels = covered["all"][1]
-    for subset in SUBSETS:
-        suffix = subset_suffix(subset)
-        for name, value in metrics[subset].compute().items():
-            if name != "pixels":
-                out[f"test/{name}{suffix}"] = float(value)
-        out[f"test/coverage{suffix}"] = covered[subset][0] / max(covered[subset][1], 1.0)
-        if subset != "all":
-            out[f"test/share{suffix}"] = covered[subset][1] / max(valid_pixels, 1.0)
-    out.update(
-        model="classical",
-        views=list(m.views),
-        **({"capture": capture.key, "images_per_projector": capture.images} if capture else {}),
-        parameters=0,
-        train_seconds=0.0,
-        test_seconds=round(time.perf_counter() - t0, 1),
-        scenes=len(ids),
-        resolution=[h, w],
-        **provenance(m.root),
-    )
-    out_dir = Path(out_dir)
-    write_test_outputs(out_dir, rows, preds)
-    write_json(out_dir / METRICS, portable_record(out, out_dir))
-    return out
