@@ -6,8 +6,8 @@ ValueErrors that name the file or config key at fault; one raised by a config re
 constructor arrives wrapped by OmegaConf or Hydra and is reported by its own message. The
 operating system's (a full disk, a read-only folder, a file where a folder belongs) name the
 file from the OSError. Hydra's own (an unknown config option, a key typo, a ``.hydra`` folder it
-cannot write) are put in one line by :func:`app`, which every entry point uses instead of
-``hydra.main``.
+cannot write) are put in one line by :func:`odmv.config.app`, which every entry point uses
+instead of ``hydra.main``.
 """
 
 from __future__ import annotations

@@ -16,6 +16,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from odmv.cli import WRAPPERS, hydra_line, note_existing_outputs, traceback_wanted
 from odmv.data.reference import view_channels as reference_channels
 from odmv.models.odmvnet import TABLE_I
+from odmv.models.phase import reads_maps
 from odmv.rig import VIEW_SETS, check_views
 from odmv.sim.shifts import KINDS
 
@@ -128,10 +129,9 @@ def availability(view_dropout):
 
 
 def phase_head(head):
-    """The data module's ``calibration`` switch: True with ``head=phase``, else None (off)."""
-    if head not in (None, "depth", "phase"):
-        raise ValueError(f"head={head}: unknown; choose depth or phase")
-    return True if head == "phase" else None
+    """The data module's ``calibration`` switch: True where the head reads the rig's maps
+    (odmv.models.phase.HEADS), else None (off)."""
+    return True if reads_maps(head) else None
 
 
 def phase_views(head, views):

@@ -13,15 +13,17 @@ from helpers import RIG, compose_config, predicted_depth, tiny_overrides
 
 from odmv.classical.fringe import triangulate_depth
 from odmv.classical.geometry import depth_from_offset, triangulation_maps
+from odmv.config import in_channels, nets
 from odmv.data.dataset import DataError, check_spec, load_scene
+from odmv.data.normalize import Normalization
 from odmv.deploy.onnx import METADATA_KEY, export_onnx
 from odmv.io.exr import read_channel
 from odmv.io.manifest import load_manifest
-from odmv.models.phase import lowest_order, view_depths
+from odmv.models.phase import HEADS, lowest_order, view_depths
 from odmv.rig import VIEW_NAMES
 from odmv.training.evaluation import evaluate
 from odmv.training.losses import LossWeights, composite_loss
-from odmv.training.module import load_module
+from odmv.training.module import FPPModule, load_module
 from odmv.training.run import train
 
 
@@ -133,6 +135,27 @@ def test_the_confidence_can_be_trained_to_pick_the_candidate_nearest_the_truth()
     assert composite_loss(out, batch, nearest)["confidence"] < 0.01
 
 
+@pytest.mark.parametrize("head", HEADS)
+@pytest.mark.parametrize("model", nets())
+def test_every_net_of_the_registry_takes_every_head(model, head):
+    """One entry of HEADS is a head option: every net builds with it, the data module carries
+    the rig's maps exactly where it reads them, and the net gives depth from its input."""
+    views = 4 if model == "odmvnet" else 1
+    ov = [f"model={model}", f"widths.{model}=4", f"views={views}", f"head={head}"]
+    cfg = compose_config("train", ov + (["model.net.blocks=1"] if model == "odmvnet" else []))
+    norm = Normalization.for_working_distance(
+        RIG.camera.working_distance_mm, cfg.data.depth_half_range_mm, 1.0, cfg.data.depth_target
+    )
+    module = FPPModule.from_config(cfg, norm.to_dict(), list(VIEW_NAMES)[:views]).eval()
+    reads = HEADS[head]
+    assert module.phase_head == reads and cfg.data.calibration == (True if reads else None)
+    x = torch.zeros(1, in_channels(cfg.views, cfg.reference, cfg.view_dropout), 32, 32)
+    maps = torch.from_numpy(triangulation_maps(RIG, list(VIEW_NAMES)[:views], 32, 32, 240.0, 0, 12))
+    with torch.no_grad():
+        out = module(x, maps[None] if reads else None)
+    assert out["depth"].shape[-2:] == (32, 32) and ("weights" in out) == reads
+
+
 @pytest.fixture(scope="module")
 def phase_runs(tiny_dataset, tmp_path_factory):
     """Each net trained for one epoch with the phase head (UHRNet's confidence against the
@@ -151,19 +174,19 @@ def phase_runs(tiny_dataset, tmp_path_factory):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("model", ["odmvnet", "unet", "hnet", "uhrnet", "mtlnet"])
+@pytest.mark.parametrize("model", nets())
 def test_every_net_trains_with_the_phase_head(phase_runs, model):
     _, metrics = phase_runs[model]
     assert np.isfinite(metrics["test/mae_mm"]) and metrics["test/mae_mm"] < 20
     assert 0 <= metrics["test/order_wrong"] <= 1  # lit view pixels a fringe order off
     module = load_module(metrics["best_checkpoint"])
-    assert module.phase_head and module.hparams.input_spec["calibration"]
+    assert module.phase_head and module.hparams.input_spec["head"] == "phase"
     with pytest.raises(ValueError, match="calibration maps"):
         module(torch.zeros(1, len(module.hparams.views) * 3, 32, 32))
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("model", ["odmvnet", "unet", "hnet", "uhrnet", "mtlnet"])
+@pytest.mark.parametrize("model", nets())
 def test_a_phase_head_net_evaluates_predicts_and_exports(model, phase_runs, tiny_dataset, tmp_path):
     run, metrics = phase_runs[model]
     ckpt = metrics["best_checkpoint"]
@@ -181,7 +204,7 @@ def test_a_phase_head_net_evaluates_predicts_and_exports(model, phase_runs, tiny
     assert [i.name for i in session.get_inputs()] == ["inputs", "calibration"]
     assert [o.name for o in session.get_outputs()] == ["depth_mm", "weights"]
     meta = json.loads(session.get_modelmeta().custom_metadata_map[METADATA_KEY])
-    assert meta["input_spec"]["calibration"] is True
+    assert meta["input_spec"]["head"] == "phase"
 
     scene = tiny_dataset / "scenes" / "000004"
     depths = {}

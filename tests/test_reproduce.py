@@ -17,7 +17,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from odmv.classical.reconstruct import CAPTURES
-from odmv.config import CONF_DIR, compose_train
+from odmv.config import CONF_DIR, compose_train, model_configs, nets
 from odmv.config import contenders as contenders_of
 from odmv.data.normalize import Normalization
 from odmv.data.subsets import footprint_from_depth, subset_masks
@@ -178,6 +178,47 @@ def test_mini_trains_every_net_for_the_same_epochs_in_one_cosine_cycle():
     for contender in contenders:
         cfg = _compose(["experiment=mini", f"model={contender}"])
         assert (cfg.trainer.max_epochs, cfg.scheduler.T_0) == (70, 70), contender
+
+
+#: the settings a preset may give each net by name (conf/model/NAME.yaml holds each one's own)
+PER_NET = ("widths", "alphas", "lrs")
+
+
+def _preset_settings(experiment: str) -> dict[str, set[str]]:
+    """The nets a preset names in each per-net setting, with the presets and groups it builds
+    on (its defaults list)."""
+    named = {key: set() for key in PER_NET}
+    raw = OmegaConf.load(Path(CONF_DIR, "experiment", f"{experiment}.yaml"))
+    sources = [raw]
+    for entry in raw.get("defaults") or []:
+        if isinstance(entry, str) and entry != "_self_":
+            for key, nets_named in _preset_settings(entry).items():
+                named[key] |= nets_named
+        elif OmegaConf.is_dict(entry):
+            for group, option in entry.items():
+                sources.append(OmegaConf.load(Path(CONF_DIR, group.strip("/"), f"{option}.yaml")))
+    for source in sources:
+        for key in PER_NET:
+            named[key] |= set(source.get(key) or {})
+    return named
+
+
+@pytest.mark.parametrize(
+    "experiment", sorted(p.stem for p in Path(CONF_DIR, "experiment").glob("*.yaml"))
+)
+def test_every_net_composes_under_every_preset_with_its_settings(experiment):
+    """Every model config composes and resolves under every preset; and a preset that gives a
+    setting to every net of the paper gives it to every net of the registry, so a net added
+    later cannot train under it with the paper's value where the others have the preset's."""
+    for model in model_configs():
+        cfg = compose_train([f"experiment={experiment}", f"model={model}"])
+        OmegaConf.to_container(cfg.model, resolve=True)
+        assert float(cfg.optimizer.lr) > 0 and 0 <= float(cfg.loss.alpha) <= 1, model
+    registry = set(nets())
+    paper = {n for n, c in model_configs().items() if (c.model.get("table2") or {}).get("paper")}
+    for key, named in _preset_settings(experiment).items():
+        if paper <= named:
+            assert registry <= named, f"experiment={experiment}: {key} lacks {registry - named}"
 
 
 def test_paper_keeps_the_recipe_and_the_other_presets_take_the_improvements():

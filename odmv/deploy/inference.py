@@ -20,6 +20,7 @@ from odmv.data.normalize import Normalization
 from odmv.data.reference import network_input, reference_mode, reference_phase
 from odmv.data.views import with_availability
 from odmv.deploy.onnx import METADATA_KEY, input_shape
+from odmv.models.phase import check_head, reads_maps
 from odmv.rig import Rig
 from odmv.training.module import load_module
 
@@ -38,9 +39,10 @@ class Predictor:
     run: Callable[[torch.Tensor, torch.Tensor | None], dict]
 
     def calibration(self, rig: Rig) -> torch.Tensor | None:
-        """The triangulation maps (1 x S x 6 x H x W) a phase-head net needs; None for others."""
+        """The triangulation maps (1 x S x 6 x H x W) a net whose head reads them needs
+        (odmv.models.phase.HEADS); None for others."""
         spec = self.input_spec
-        if not spec.get("calibration"):
+        if not reads_maps(spec.get("head")):
             return None
         maps = triangulation_maps(
             rig, self.views, *self.size, spec["period_px"], spec["step"], spec["n_steps"]
@@ -100,11 +102,12 @@ def module_predictor(module) -> Predictor:
                 result["weights"] = out["weights"].numpy()
             return result
 
+    head = check_head(module.hparams.net_cfg.get("head"))[0]  # (older checkpoints' spec lacks it)
     return Predictor(
         list(module.hparams.views),
         input_shape(module)[1:],
         module.norm,
-        dict(module.hparams.get("input_spec") or {}),
+        dict(module.hparams.get("input_spec") or {}) | {"head": head},
         run,
     )
 
@@ -132,10 +135,12 @@ def _onnx_predictor(path: Path) -> Predictor:
             feed["calibration"] = calibration.numpy()
         return dict(zip(names, session.run(None, feed), strict=True))
 
+    # what the graph takes decides; older exports' spec lacks the head
+    head = meta["input_spec"].get("head") or ("phase" if takes_maps else "depth")
     return Predictor(
         meta["views"],
         tuple(meta["input_size"]),
         Normalization(**meta["norm"]),
-        meta["input_spec"],
+        meta["input_spec"] | {"head": head},
         run,
     )

@@ -34,15 +34,18 @@ from odmv.classical.geometry import (
 )
 from odmv.models.blocks import inner_softmax
 
-HEADS = ("depth", "phase")
+#: every head a net can have (``head=NAME``; null: the paper's depth head) -> whether the net
+#: reads the rig's triangulation maps beside its images: the data module then carries them
+#: (``data.calibration``) and the forward pass, ONNX graph and predictor take them
+HEADS = {"depth": False, "phase": True}
 
 
-def check_head(head: str | None, orders: int | None) -> tuple[str, int]:
+def check_head(head: str | None, orders: int | None = None) -> tuple[str, int]:
     """``head`` and ``orders`` with their defaults (None: the depth head; 0 orders, i.e. the
     regressed depth gives the order), checked."""
     head, orders = head or "depth", orders or 0
     if head not in HEADS:
-        raise ValueError(f"head: {head!r} unknown; choose depth or phase")
+        raise ValueError(f"head={head}: unknown; choose {' or '.join(HEADS)}")
     if orders < 0:
         raise ValueError(f"phase_orders: {orders} must be 0 (the regressed depth) or more")
     return head, orders
@@ -103,8 +106,10 @@ class PhaseHead3d(nn.Module):
         return _outputs(y, self.regressed(fused).float(), self.orders)
 
 
-def has_phase_head(net: nn.Module) -> bool:
-    return any(isinstance(m, (PhaseHead2d, PhaseHead3d)) for m in net.modules())
+def reads_maps(head: str | None) -> bool:
+    """Whether a net with ``head`` (its config's; None: the depth head) reads the rig's
+    triangulation maps beside its images (:data:`HEADS`)."""
+    return HEADS[check_head(head)[0]]
 
 
 def view_depths(out: dict, maps: torch.Tensor, coarse_mm: torch.Tensor) -> torch.Tensor:

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import fnmatch
 import hashlib
+import importlib
+import inspect
 import itertools
 import json
 import shlex
@@ -131,8 +133,16 @@ def sweep_overrides(protocol: str, table: str, extra: list[str]) -> list[list[st
     return [list(combo) for combo in itertools.product(*axes)]
 
 
-#: net settings added after rows were trained, with the value that builds the net as before
-NET_SETTINGS_BEFORE = {"separable": False, "levels": 4, "fusion_kernel": [3, 7, 7]}
+def net_defaults(target: str) -> dict:
+    """The keyword defaults of the net class ``target`` names: a setting at its class's
+    default builds the net as before the setting existed (one place for a net's defaults)."""
+    module, _, name = target.rpartition(".")
+    cls = getattr(importlib.import_module(module), name)
+    return {
+        k: list(p.default) if isinstance(p.default, tuple) else p.default
+        for k, p in inspect.signature(cls).parameters.items()
+        if p.default is not inspect.Parameter.empty
+    }
 
 
 def _run_key(cfg: DictConfig) -> str:
@@ -182,9 +192,10 @@ def _run_key(cfg: DictConfig) -> str:
         d.pop("adaptation", None)
     if not d.get("distill_from"):  # no teacher: its weights are never read
         d.pop("distill", None)
-    for key, before in NET_SETTINGS_BEFORE.items():  # the net as it was before the setting
-        if d["model"]["net"].get(key, before) == before:
-            d["model"]["net"].pop(key, None)
+    net = d["model"]["net"]
+    for key, default in net_defaults(net["_target_"]).items():  # as before the setting was
+        if key in net and net[key] == default:
+            net.pop(key)
     if d["data"].get("labels") is True:  # the ground truth read, as before it could be not
         d["data"].pop("labels")
     for setting in QUIET:  # how a run reports is not what it is

@@ -27,7 +27,7 @@ from odmv.data.subsets import MASKS
 from odmv.io.atomic import write_csv, write_npz
 from odmv.io.runfolder import PREDICTIONS, SCENES_CSV, recorded_dataset
 from odmv.models.blocks import split_availability
-from odmv.models.phase import fuse, has_phase_head
+from odmv.models.phase import check_head, fuse, reads_maps
 from odmv.training.checkpoint import CheckpointError, check_weights, read_checkpoint
 from odmv.training.configs import adapt_settings, data_config, distill_settings, run_summary
 from odmv.training.consistency import ConsistencySettings, consistency_loss
@@ -112,7 +112,8 @@ class FPPModule(L.LightningModule):
         # logged by on_fit_start once the data has resolved the views and normalization
         self.save_hyperparameters(logger=False)
         self.net = build_net(net_cfg)
-        self.phase_head = has_phase_head(self.net)  # head=phase: fused through the calibration
+        # a head that reads the rig's maps (head=phase) fuses its depth through them
+        self.phase_head = reads_maps(net_cfg.get("head"))
         # torch.compile's wrapper of the net, kept off the module tree: the checkpoint holds
         # the plain net's weights under their own names, loadable with or without compiling
         object.__setattr__(
@@ -185,7 +186,8 @@ class FPPModule(L.LightningModule):
                 "step": spec.step,
                 "n_steps": spec.n_steps,
                 "quantity": dm.manifest.quantity,  # what the depth maps hold: depth or height
-                "calibration": spec.calibration,  # head=phase: takes the triangulation maps
+                "calibration": spec.calibration,  # the batches carry the triangulation maps
+                "head": check_head(self.hparams.net_cfg.get("head"))[0],  # what the net reads
             }
             # one input at the data's size: the model summary then counts FLOPs per sample
             ds = next(iter(dm.datasets.values()), None)
