@@ -1,0 +1,87 @@
+"""Per-pixel error bars and how to judge them (numpy; depths and errors in mm).
+
+A net's uncertainty is a score per pixel that should rank its errors: larger where the depth
+is worse. Split conformal calibration (:func:`conformal_scale`) turns it into an interval
+without trusting the model: on held-back scenes with ground truth, the normalized errors
+|error| / score give the factor q whose interval ``depth ± q x score`` holds the truth on the
+asked share of pixels (``coverage``); the same factor then serves every later capture, as long
+as it resembles the calibration scenes. Pixels of one scene are not exchangeable with each
+other, scenes are: the guarantee is marginal over pixels of scenes drawn like the calibration
+ones. Mondrian calibration (``groups``: a scene family, a height band) gives each group its
+own factor where one factor would cover some groups too much and others too little.
+
+How well the score ranks the errors, whatever its scale: the sparsification curve
+(:func:`sparsification`), the MAE of the pixels kept when the most uncertain are dropped first,
+against the oracle that drops the largest true errors first; AUSE (:func:`ause_mm`) is the area
+between them (0: the score ranks errors perfectly; a random ranking leaves the MAE flat).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: shares of the pixels kept at which the sparsification curve is read (the last: all of them)
+KEPT_SHARES = tuple(np.round(np.arange(0.05, 1.0001, 0.05), 2))
+
+
+def _flat(*arrays) -> list[np.ndarray]:
+    """The pixels where every array is finite, flattened (float64)."""
+    stacked = [np.asarray(a, np.float64).ravel() for a in arrays]
+    ok = np.logical_and.reduce([np.isfinite(a) for a in stacked])
+    return [a[ok] for a in stacked]
+
+
+def conformal_scale(
+    abs_err_mm: np.ndarray, score: np.ndarray, coverage: float, groups: np.ndarray | None = None
+) -> dict:
+    """The factor q per group (``{None: q}`` without ``groups``) such that |error| <= q x score
+    on at least ``coverage`` of the calibration pixels: the ceil((n + 1) c)-th smallest of the
+    normalized errors |error| / score (split conformal, with its finite-sample correction);
+    inf where a group has too few pixels to promise ``coverage``. Scores must be positive."""
+    if not 0 < coverage < 1:
+        raise ValueError(f"coverage={coverage}: a share between 0 and 1")
+    keys = np.zeros(np.shape(abs_err_mm), np.int64) if groups is None else np.asarray(groups)
+    err, s, g = _flat(abs_err_mm, score, keys)
+    if np.any(s <= 0):
+        raise ValueError("uncertainty scores must be positive to scale an interval")
+    out = {}
+    for key in np.unique(g):
+        ratio = np.sort(err[g == key] / s[g == key])
+        rank = math.ceil((len(ratio) + 1) * coverage)
+        q = float(ratio[rank - 1]) if rank <= len(ratio) else math.inf
+        out[None if groups is None else key.item()] = q
+    return out
+
+
+def covered(abs_err_mm: np.ndarray, half_width_mm: np.ndarray) -> float:
+    """The share of pixels whose true depth lies within the interval (|error| <= half width)."""
+    err, half = _flat(abs_err_mm, half_width_mm)
+    return float(np.mean(err <= half)) if err.size else math.nan
+
+
+def sparsification(abs_err_mm: np.ndarray, score: np.ndarray, shares=KEPT_SHARES) -> dict:
+    """The MAE (mm) of the pixels kept at each share of ``shares``, the most uncertain dropped
+    first (``score``; ties dropped in pixel order), and of the oracle that drops the largest
+    errors first; a random ranking's expectation is the all-pixel MAE at every share."""
+    err, s = _flat(abs_err_mm, score)
+    if not err.size:
+        raise ValueError("no pixel with both an error and a score")
+    by_score = err[np.argsort(s, kind="stable")]
+    by_error = np.sort(err)
+    kept = [max(1, round(share * err.size)) for share in shares]
+    return {
+        "share": [float(x) for x in shares],
+        "mae_mm": [float(by_score[:k].mean()) for k in kept],
+        "oracle_mm": [float(by_error[:k].mean()) for k in kept],
+        "random_mm": float(err.mean()),
+    }
+
+
+def ause_mm(curve: dict) -> float:
+    """Area between a sparsification curve and its oracle over the shares kept (mm x share,
+    the trapezoid rule): 0 where the score ranks the errors as the errors themselves do."""
+    x = np.asarray(curve["share"])
+    gap = np.asarray(curve["mae_mm"]) - np.asarray(curve["oracle_mm"])
+    return float(np.sum((gap[1:] + gap[:-1]) / 2 * np.diff(x)))

@@ -1,0 +1,75 @@
+"""Error bars: the split conformal factor, coverage on data with known noise, Mondrian groups,
+and the sparsification curve and AUSE against hand-made rankings."""
+
+import math
+
+import numpy as np
+import pytest
+
+from odmv.training.uncertainty import ause_mm, conformal_scale, covered, sparsification
+
+
+def test_the_conformal_factor_is_the_finite_sample_quantile_of_the_normalized_errors():
+    err = np.arange(1.0, 10.0)  # normalized errors 1 .. 9 with unit scores
+    ones = np.ones_like(err)
+    assert conformal_scale(err, ones, 0.9) == {None: 9.0}  # ceil(10 x 0.9) = 9th smallest
+    assert conformal_scale(err, ones, 0.5) == {None: 5.0}  # ceil(10 x 0.5) = 5th
+    assert conformal_scale(err, ones, 0.95) == {None: math.inf}  # 9 pixels cannot promise it
+    assert conformal_scale(err, 2 * ones, 0.5) == {None: 2.5}  # in units of the score
+    with pytest.raises(ValueError, match="positive"):
+        conformal_scale(err, 0 * ones, 0.9)
+    with pytest.raises(ValueError, match="coverage=1.5"):
+        conformal_scale(err, ones, 1.5)
+
+
+def test_intervals_hold_the_asked_coverage_on_new_pixels_with_known_noise():
+    """Heteroscedastic Gaussian errors, the true sigma as score: the factor is the normal
+    quantile (1.645 at 90 %) and new pixels are covered at the asked share; a constant score
+    covers as often but with wider intervals where the noise is low."""
+    rng = np.random.default_rng(0)
+    sigma = rng.uniform(0.01, 0.5, 200_000)
+    err = np.abs(rng.normal(0, sigma))
+    cal, new = slice(0, 100_000), slice(100_000, None)
+    for coverage, z in ((0.8, 1.2816), (0.9, 1.6449), (0.95, 1.9600)):
+        q = conformal_scale(err[cal], sigma[cal], coverage)[None]
+        assert q == pytest.approx(z, rel=0.02)
+        assert covered(err[new], q * sigma[new]) == pytest.approx(coverage, abs=0.005)
+    flat = conformal_scale(err[cal], np.ones(100_000), 0.9)[None]
+    assert covered(err[new], np.full(100_000, flat)) == pytest.approx(0.9, abs=0.005)
+    assert np.mean(1.6449 * sigma[new]) < flat  # the right score gives narrower intervals
+
+
+def test_each_group_gets_its_own_factor_where_one_would_cover_them_unevenly():
+    rng = np.random.default_rng(1)
+    group = np.repeat([0, 1], 50_000)
+    err = np.abs(rng.normal(0, np.where(group == 0, 0.05, 0.5)))
+    score = np.ones_like(err)  # a score blind to the groups
+    one = conformal_scale(err, score, 0.9)[None]
+    assert covered(err[group == 0], one * score[group == 0]) > 0.99  # over-covered
+    assert covered(err[group == 1], one * score[group == 1]) < 0.85  # under-covered
+    q = conformal_scale(err, score, 0.9, groups=group)
+    assert set(q) == {0, 1} and q[1] / q[0] == pytest.approx(10, rel=0.05)
+    for g in (0, 1):
+        assert covered(err[group == g], q[g] * score[group == g]) == pytest.approx(0.9, abs=0.01)
+
+
+def test_the_sparsification_curve_drops_the_most_uncertain_pixels_first():
+    err = np.array([4.0, 1.0, 3.0, 2.0, np.nan])  # a pixel without truth does not count
+    score = np.array([0.1, 0.4, 0.2, 0.3, 1.0])  # ranks the errors backwards
+    curve = sparsification(err, score, shares=(0.25, 0.5, 1.0))
+    assert curve["mae_mm"] == [4.0, 3.5, 2.5]  # keeps the largest errors first
+    assert curve["oracle_mm"] == [1.0, 1.5, 2.5] and curve["random_mm"] == 2.5
+    assert ause_mm(curve) == pytest.approx((3.0 + 2.0) / 2 * 0.25 + (2.0 + 0.0) / 2 * 0.5)
+    right = sparsification(err, err, shares=(0.25, 0.5, 1.0))
+    assert right["mae_mm"] == right["oracle_mm"] and ause_mm(right) == 0.0
+
+
+def test_a_score_that_ranks_the_errors_beats_a_random_one():
+    rng = np.random.default_rng(2)
+    sigma = rng.uniform(0.01, 1.0, 20_000)
+    err = np.abs(rng.normal(0, sigma))
+    good = sparsification(err, sigma)
+    noise = sparsification(err, rng.uniform(size=err.size))
+    assert good["mae_mm"][-1] == pytest.approx(err.mean())  # all kept: the plain MAE
+    assert good["mae_mm"][-3] < 0.93 * err.mean() < noise["mae_mm"][-3]  # 90 % kept
+    assert 0 < ause_mm(good) < 0.5 * ause_mm(noise)
