@@ -13,7 +13,7 @@ from PIL import Image as PILImage
 
 from odmv.classical.sequences import PspOptions
 from odmv.importers.convert import convert
-from odmv.importers.formats import ConvertError
+from odmv.importers.formats import FORMATS, ConvertError
 from odmv.io.calibration import calibration_of
 from odmv.io.exr import read_channel
 from odmv.io.manifest import HEIGHT_QUANTITY, load_manifest
@@ -87,6 +87,14 @@ SAID = {  # how each source's intensities are stored, as convert says it
 }
 
 
+def test_every_import_format_is_written_by_a_test():
+    """A format is one entry of FORMATS; the tests here make a source of each (those read with
+    a rig's calibration: the sequences' own test below)."""
+    assert set(WRITERS) == {k for k, e in FORMATS.items() if not e.rig}
+    assert [k for k, e in FORMATS.items() if e.rig] == ["sequences"]
+    assert all(e.quantity in ("depth", "height") and e.reads for e in FORMATS.values())
+
+
 @pytest.mark.parametrize("fmt", list(WRITERS))
 def test_import_validates_and_trains(fmt, tmp_path, capsys):
     src = tmp_path / "src"
@@ -107,7 +115,7 @@ def test_import_validates_and_trains(fmt, tmp_path, capsys):
     assert {"train", "val", "test"} <= set(splits)
     depth = read_channel(out / "scenes" / "000000" / "depth.exr", "Z")
     assert np.isnan(depth).any() and np.isfinite(depth).any()  # the invalid band carried over
-    if fmt == "uhrnet":  # a height map, so trained and scored as height
+    if FORMATS[fmt].quantity == "height":  # a height map, so trained and scored as height
         assert meta["quantity"] == HEIGHT_QUANTITY and meta["units"]["depth"] == HEIGHT_QUANTITY
     metrics = _train_on(out, tmp_path, m.views, size)
     assert math.isfinite(metrics["test/mae_mm"]) and math.isfinite(metrics["test/loss"])

@@ -70,7 +70,8 @@ def convert(
     ``calibration`` (a file) or ``manifest`` (a dataset whose rig it is), and ``psp``, are the
     sequences format's."""
     if fmt not in FORMATS:
-        raise ConvertError(f"format: {fmt!r} unknown; choose {', '.join(FORMATS)}")
+        known = "; ".join(f"{k} ({e.reads})" for k, e in FORMATS.items())
+        raise ConvertError(f"format: {fmt!r} unknown; choose one of {known}")
     entry = FORMATS[fmt]
     if intensity not in INTENSITIES:
         raise ConvertError(f"intensity: {intensity!r} unknown; choose {', '.join(INTENSITIES)}")

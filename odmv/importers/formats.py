@@ -276,7 +276,7 @@ class Importer:
     dataset keeps the full sequences (``images: full``)."""
 
     reader: Callable[..., Iterator[Sample]]
-    reads: str  # what a source holds, for a line of help
+    reads: str  # what a source holds, as the refusal of an unknown format lists it
     quantity: str = "depth"
     crop: bool = True
     rig: bool = False
