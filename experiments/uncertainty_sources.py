@@ -22,38 +22,27 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from odmv.training.evaluation import checkpoint_datamodule  # noqa: E402
 from odmv.training.module import load_module  # noqa: E402
 from odmv.training.uncertainty import (  # noqa: E402
+    TINY_MM,
     ause_mm,
     conformal_scale,
     covered,
+    pixel_score,
     sparsification,
 )
 
-TINY = 1e-6  # a floor under every score: a zero score gives no interval to scale
 
-
-def steepness(depth_mm: torch.Tensor) -> torch.Tensor:
-    """The 3 x 3 maximum of the depth's gradient magnitude (mm per pixel), B x 1 x H x W."""
-    gy, gx = torch.gradient(depth_mm, dim=(-2, -1))
-    return F.max_pool2d(torch.hypot(gx, gy), 3, stride=1, padding=1)
-
-
-def phase_scores(module, out: dict) -> dict[str, torch.Tensor]:
+def phase_scores(out: dict, depth: torch.Tensor) -> dict[str, torch.Tensor]:
     """The phase head's own doubts (B x 1 x H x W)."""
-    fused = module.depth_mm(out)
-    candidates = torch.cat([out["view_depth_mm"], out["regressed_mm"]], 1)
-    w = out["weights"]
-    spread = (w * (torch.nan_to_num(candidates) - fused) ** 2).sum(1, keepdim=True).sqrt()
     return {
-        "fusion spread (mm)": spread,
-        "fusion doubt (1 - max weight)": 1 - w.amax(1, keepdim=True),
-        "fused vs regressed (mm)": (fused - out["regressed_mm"]).abs(),
+        "fusion spread (mm)": pixel_score(out, depth, "spread"),
+        "fusion doubt (1 - max weight)": 1 - out["weights"].amax(1, keepdim=True),
+        "fused vs regressed (mm)": (depth - out["regressed_mm"]).abs(),
     }
 
 
@@ -66,9 +55,9 @@ def split_scores(module, other, dm, split: str) -> tuple[np.ndarray, dict[str, n
             out = module.run(batch)
             depth = module.depth_mm(out)
             valid = (batch["valid"] > 0) & torch.isfinite(batch["depth_mm"])
-            found = {"depth steepness (mm/px)": steepness(depth)}
+            found = {"depth steepness (mm/px)": pixel_score(out, depth, "steepness")}
             if "weights" in out:
-                found |= phase_scores(module, out)
+                found |= phase_scores(out, depth)
             if "fusion spread (mm)" in found:  # both: a steep place the views disagree on
                 found["spread x steepness"] = (
                     found["fusion spread (mm)"] * found["depth steepness (mm/px)"]
@@ -78,7 +67,7 @@ def split_scores(module, other, dm, split: str) -> tuple[np.ndarray, dict[str, n
             errors.append((depth - batch["depth_mm"]).abs()[valid].numpy())
             for name, s in found.items():
                 scores.setdefault(name, []).append(s.float()[valid].numpy())
-    return np.concatenate(errors), {k: np.concatenate(v) + TINY for k, v in scores.items()}
+    return np.concatenate(errors), {k: np.concatenate(v) + TINY_MM for k, v in scores.items()}
 
 
 def main(argv: list[str]) -> None:

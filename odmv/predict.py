@@ -33,7 +33,8 @@ def main(cfg: DictConfig) -> None:
     # a folder the user had is theirs: never removed, even when the prediction fails (odmv.cli)
     results = run_app(lambda: predict(cfg), cfg.out or cfg.paths.output_dir)
     if len(results) == 1:  # (method=psp without a calibration wrote the phase only)
-        names = {"depth": "depth (mm)", "points": "point cloud", "phase": "phase (rad)"}
+        names = {"depth": "depth (mm)", "uncertainty": "its error bar (mm)"}
+        names |= {"points": "point cloud", "phase": "phase (rad)"}
         print("\n".join(f"{names[k]}: {results[0][k]}" for k in names if results[0].get(k)))
     if any("depth" in r for r in results):  # a page needs a depth map
         page = run_app(lambda: page_of(Path(cfg.out or cfg.paths.output_dir)))

@@ -1,12 +1,21 @@
 """Error bars: the split conformal factor, coverage on data with known noise, Mondrian groups,
-and the sparsification curve and AUSE against hand-made rankings."""
+the sparsification curve and AUSE against hand-made rankings; and a tiny trained run
+calibrated, predicting its error bars into the depth's files and the point cloud."""
 
+import json
 import math
+import shutil
 
 import numpy as np
 import pytest
 
-from odmv.training.uncertainty import ause_mm, conformal_scale, covered, sparsification
+from odmv.training.uncertainty import (
+    COVERAGES,
+    ause_mm,
+    conformal_scale,
+    covered,
+    sparsification,
+)
 
 
 def test_the_conformal_factor_is_the_finite_sample_quantile_of_the_normalized_errors():
@@ -73,3 +82,64 @@ def test_a_score_that_ranks_the_errors_beats_a_random_one():
     assert good["mae_mm"][-1] == pytest.approx(err.mean())  # all kept: the plain MAE
     assert good["mae_mm"][-3] < 0.93 * err.mean() < noise["mae_mm"][-3]  # 90 % kept
     assert 0 < ause_mm(good) < 0.5 * ause_mm(noise)
+
+
+def test_a_calibrated_run_predicts_its_error_bars_into_the_depth_and_the_cloud(
+    trained, tiny_dataset, tmp_path
+):
+    """odmv.study uncertainty RUN calibrates on the validation split and judges on the test
+    split; predict then writes each pixel's half width, the trusted mask, and the cloud's
+    uncertainty attribute, keeping only trusted points where asked."""
+    from helpers import compose_config
+
+    from odmv.deploy.predict import predict
+    from odmv.io.exr import read_channel
+    from odmv.study.uncertainty import main
+
+    run = shutil.copytree(trained[0], tmp_path / "run")  # the shared run stays as it was
+    main([str(run)])
+    bars = json.loads((run / "uncertainty.json").read_text())
+    assert bars["score"] == "steepness"  # a depth-head net
+    factors = [bars["factor"][str(c)] for c in COVERAGES]
+    assert factors == sorted(factors) and factors[0] > 0
+    test = bars["test"]
+    assert 0 <= test["coverage"]["0.9"] <= 1 and test["ause_mm"] >= 0
+    assert test["sparsification"]["mae_mm"][-1] == pytest.approx(test["mae_mm"], rel=1e-5)
+    split = json.loads((run / "split.json").read_text())
+    scene = tiny_dataset / "scenes" / split["test"][0]
+
+    def predicted(out, *extra):
+        cfg = compose_config(
+            "predict",
+            [
+                f"ckpt_path={run / bars['checkpoint']}",
+                f"input={scene}",
+                f"out={out}",
+                "colour=false",
+                *extra,
+            ],
+        )
+        return predict(cfg)[0]
+
+    written = predicted(tmp_path / "all", "drop_unlit=false")
+    half = read_channel(written["uncertainty"], "Z")
+    trusted = read_channel(written["trusted"], "Y") > 0
+    depth = read_channel(written["depth"], "Z")
+    assert half.shape == depth.shape and (half > 0).all() and 0 < trusted.mean() < 1
+    points, names = _ply(written["points"])
+    assert names[-1] == "uncertainty" and len(points) == np.isfinite(depth).sum()
+    np.testing.assert_array_equal(points[:, -1], half[np.isfinite(depth)])
+    wide = read_channel(predicted(tmp_path / "wide", "coverage=0.99")["uncertainty"], "Z")
+    assert (wide >= half).all() and (wide > half).any()
+    kept, _ = _ply(predicted(tmp_path / "kept", "drop_unlit=false", "trusted_only=true")["points"])
+    assert len(kept) == (trusted & np.isfinite(depth)).sum()
+    with pytest.raises(ValueError, match="coverage=0.7: calibrated at 0.5, 0.8"):
+        predicted(tmp_path / "odd", "coverage=0.7")
+
+
+def _ply(path) -> tuple[np.ndarray, list[str]]:
+    """A binary PLY of float properties: its vertices (N x properties) and property names."""
+    data = path.read_bytes()
+    head, _, body = data.partition(b"end_header\n")
+    names = [line.split()[-1] for line in head.decode().splitlines() if line.startswith("property")]
+    return np.frombuffer(body, "<f4").reshape(-1, len(names)), names

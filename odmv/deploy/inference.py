@@ -20,9 +20,12 @@ from odmv.data.normalize import Normalization
 from odmv.data.reference import network_input, reference_mode, reference_phase
 from odmv.data.views import with_availability
 from odmv.deploy.onnx import METADATA_KEY, input_shape
+from odmv.io.runfolder import UNCERTAINTY
 from odmv.models.phase import check_head, reads_maps
 from odmv.rig import Rig
+from odmv.training.configs import run_folder_of
 from odmv.training.module import load_module
+from odmv.training.uncertainty import pixel_score
 
 
 @dataclass
@@ -37,6 +40,14 @@ class Predictor:
     norm: Normalization
     input_spec: dict
     run: Callable[[torch.Tensor, torch.Tensor | None], dict]
+    error_bars: dict | None = None  # its run's uncertainty.json (odmv.study.uncertainty)
+
+    def half_width_mm(self, score: np.ndarray, coverage: float) -> np.ndarray:
+        """Each pixel's interval half width (mm) at ``coverage`` from its score."""
+        factors = self.error_bars["factor"]
+        if str(coverage) not in factors:
+            raise ValueError(f"coverage={coverage}: calibrated at {', '.join(factors)} only")
+        return (factors[str(coverage)] * score).astype(np.float32)
 
     def calibration(self, rig: Rig) -> torch.Tensor | None:
         """The triangulation maps (1 x S x 6 x H x W) a net whose head reads them needs
@@ -88,18 +99,34 @@ def load_predictor(path: str | Path) -> Predictor:
     on CUDA where available)."""
     if Path(path).suffix == ".onnx":
         return _onnx_predictor(Path(path))
-    return module_predictor(load_module(path).eval())
+    return module_predictor(load_module(path).eval(), _error_bars(Path(path)))
 
 
-def module_predictor(module) -> Predictor:
-    """A trained module (eval mode) run by PyTorch as a :class:`Predictor`."""
+def _error_bars(ckpt: Path) -> dict | None:
+    """The calibration of the run a checkpoint is the best of (its uncertainty.json), if any."""
+    run = run_folder_of(ckpt)
+    path = run / UNCERTAINTY if run is not None else None
+    if path is None or not path.is_file():
+        return None
+    bars = json.loads(path.read_text())
+    if (run / bars.get("checkpoint", "")).resolve() != ckpt.resolve():
+        return None  # calibrated on another checkpoint of the run
+    return bars
+
+
+def module_predictor(module, error_bars: dict | None = None) -> Predictor:
+    """A trained module (eval mode) run by PyTorch as a :class:`Predictor` (with its
+    calibration, ``score_mm``: each pixel's uncertainty score)."""
 
     def run(x: torch.Tensor, calibration: torch.Tensor | None = None) -> dict:
         with torch.no_grad():
             out = module(x, calibration)
-            result = {"depth_mm": module.depth_mm(out).numpy().astype(np.float32)}
+            depth = module.depth_mm(out)
+            result = {"depth_mm": depth.numpy().astype(np.float32)}
             if "weights" in out:
                 result["weights"] = out["weights"].numpy()
+            if error_bars is not None:
+                result["score_mm"] = pixel_score(out, depth, error_bars["score"]).numpy()
             return result
 
     head = check_head(module.hparams.net_cfg.get("head"))[0]  # (older checkpoints' spec lacks it)
@@ -109,6 +136,7 @@ def module_predictor(module) -> Predictor:
         module.norm,
         dict(module.hparams.get("input_spec") or {}) | {"head": head},
         run,
+        error_bars,
     )
 
 

@@ -153,6 +153,13 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
     if cfg.method == "net" and not cfg.ckpt_path:
         raise ValueError("ckpt_path: give a checkpoint or model.onnx (or method=psp)")
     predictor = load_predictor(cfg.ckpt_path) if cfg.method == "net" else None
+    if cfg.get("trusted_only") and (predictor is None or predictor.error_bars is None):
+        raise ValueError(
+            "trusted_only: the net has no calibrated error bars (python -m odmv.study "
+            "uncertainty RUN writes them beside its checkpoint)"
+        )
+    if predictor is not None and predictor.error_bars is not None:
+        predictor.half_width_mm(np.zeros(1), float(cfg.coverage))  # a coverage it holds
     views = predictor.views if predictor else list(VIEW_NAMES)
     unknown = [v for v in cfg.get("views") or [] if v not in views]
     if unknown:  # before anything is written
@@ -231,7 +238,11 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
                     images, period_in_camera_px(period, cam, proj), cfg.unlit_threshold
                 )
             grey = uniform_grey(scene, reader, used, depth.shape) if cfg.colour else None
-            results.append(write_outputs(out, depth, cam, keep, grey, scene, cfg, quantity))
+            if r.error_bar is not None and cfg.get("trusted_only"):
+                keep = r.error_bar.trusted if keep is None else keep & r.error_bar.trusted
+            results.append(
+                write_outputs(out, depth, cam, keep, grey, scene, cfg, quantity, r.error_bar)
+            )
             bar.advance(task)
     seconds = time.perf_counter() - t0
     print(
@@ -240,6 +251,14 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
         flush=True,
     )
     return results
+
+
+class ErrorBar(NamedTuple):
+    """A calibrated net's error bar at the asked coverage: each pixel's interval half width
+    (mm) and whether the calibration trusts it."""
+
+    half_width_mm: np.ndarray
+    trusted: np.ndarray
 
 
 class Reconstruction(NamedTuple):
@@ -253,6 +272,7 @@ class Reconstruction(NamedTuple):
     period: float | None
     used: list[str]
     phases: tuple[Path, ...] = ()
+    error_bar: ErrorBar | None = None
 
 
 def _by_net(scene: Scene, predictor, reader, default_rig, cfg, out: Path) -> Reconstruction:
@@ -269,8 +289,13 @@ def _by_net(scene: Scene, predictor, reader, default_rig, cfg, out: Path) -> Rec
     if "weights" in result:  # head=phase: each view's share of the depth
         write_weights(out, result["weights"][0], predictor.views)
     depth = result["depth_mm"][0, 0].astype(np.float32)
+    bar = None
+    if "score_mm" in result:
+        score = result["score_mm"][0, 0]
+        trusted = score <= predictor.error_bars["trusted_score_mm"]
+        bar = ErrorBar(predictor.half_width_mm(score, float(cfg.coverage)), trusted)
     return Reconstruction(
-        depth, rig, images, predictor.input_spec.get("period_px"), predictor.views
+        depth, rig, images, predictor.input_spec.get("period_px"), predictor.views, (), bar
     )
 
 
@@ -352,9 +377,13 @@ def write_outputs(
     scene: Scene,
     cfg,
     quantity: str = "depth",
+    error_bar: ErrorBar | None = None,
 ) -> dict[str, Path]:
     """depth.exr (or, for a net trained on height maps, the height above the reference plane
-    in it), its preview, and points.ply where a camera (``cam``) is known."""
+    in it), its preview, and points.ply where a camera (``cam``) is known; with a calibrated
+    net's ``error_bar``: uncertainty.exr (each pixel's interval half width, mm, at the asked
+    coverage), trusted.exr (1 where the calibration trusts the pixel) and each point's
+    half width in points.ply."""
     attributes = {
         "unit": "mm",
         "odmv_quantity": HEIGHT_QUANTITY
@@ -369,9 +398,23 @@ def write_outputs(
         "depth": write_exr(out / "depth.exr", {"Z": depth}, attributes=attributes),
         "preview": write_preview(out / "depth.png", depth),
     }
+    if error_bar is not None:
+        bars = {"unit": "mm", "odmv_coverage": str(cfg.coverage)}
+        bars["odmv_quantity"] = "interval half width of the depth"
+        written["uncertainty"] = write_exr(
+            out / "uncertainty.exr", {"Z": error_bar.half_width_mm}, attributes=bars
+        )
+        written["trusted"] = write_exr(
+            out / "trusted.exr",
+            {"Y": error_bar.trusted.astype(np.float16)},
+            attributes={"odmv_quantity": "1 where the calibration trusts the depth"},
+        )
     if cam is not None:
         kept = np.isfinite(depth) & (True if keep is None else keep)
         written["points"] = write_ply(
-            out / "points.ply", point_cloud(depth, cam, keep), None if grey is None else grey[kept]
+            out / "points.ply",
+            point_cloud(depth, cam, keep),
+            None if grey is None else grey[kept],
+            None if error_bar is None else error_bar.half_width_mm[kept],
         )
     return written

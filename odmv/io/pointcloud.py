@@ -22,23 +22,34 @@ def point_cloud(depth_mm: np.ndarray, cam: Camera, keep: np.ndarray | None = Non
     return pts[ok]
 
 
-def write_ply(path: Path, points: np.ndarray, grey: np.ndarray | None = None) -> Path:
+def write_ply(
+    path: Path,
+    points: np.ndarray,
+    grey: np.ndarray | None = None,
+    uncertainty_mm: np.ndarray | None = None,
+) -> Path:
     """Binary little-endian PLY of float32 xyz points (grey: uint8 colour per point, written
-    as equal red, green and blue), atomically."""
+    as equal red, green and blue; ``uncertainty_mm``: each point's interval half width, the
+    float property ``uncertainty``), atomically."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     if grey is not None:
         fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    if uncertainty_mm is not None:
+        fields += [("uncertainty", "<f4")]
     rows = np.empty(len(points), dtype=fields)
     for k, axis in enumerate("xyz"):
         rows[axis] = points[:, k]
     if grey is not None:
         for channel in ("red", "green", "blue"):
             rows[channel] = grey
+    if uncertainty_mm is not None:
+        rows["uncertainty"] = uncertainty_mm
     types = {"<f4": "float", "u1": "uchar"}
     header = (
         "ply\nformat binary_little_endian 1.0\ncomment odmv depth, camera frame, mm\n"
-        f"element vertex {len(points)}\n"
+        + ("comment uncertainty: interval half width, mm\n" if uncertainty_mm is not None else "")
+        + f"element vertex {len(points)}\n"
         + "".join(f"property {types[t]} {name}\n" for name, t in fields)
         + "end_header\n"
     )

@@ -23,6 +23,7 @@ LOCK = "run.lock"  # the pid of the training writing into the folder
 FAILED = "failed.txt"  # a failed training's error, beside what it wrote
 CALIBRATION_CHECK = "calibration_check.json"  # a fine-tune's check of its starting net
 PRIOR = "prior.json"  # the prior probe (odmv.study.prior): MAE with the scene moved
+UNCERTAINTY = "uncertainty.json"  # the error bars' calibration (odmv.study.uncertainty)
 
 #: where a checkout keeps its datasets (conf/paths/default.yaml's data_dir)
 DATA_DIR = "data"

@@ -18,4 +18,5 @@ VERBS = {
     "captures": "captures",
     "graphs": "graphs",
     "prior": "prior",
+    "uncertainty": "uncertainty",
 }

@@ -21,9 +21,42 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
+import torch.nn.functional as F
 
 #: shares of the pixels kept at which the sparsification curve is read (the last: all of them)
 KEPT_SHARES = tuple(np.round(np.arange(0.05, 1.0001, 0.05), 2))
+#: the coverages a calibration holds a factor for (predict's ``coverage=`` picks one)
+COVERAGES = (0.5, 0.8, 0.9, 0.95, 0.99)
+#: the scores a net's own output gives (experiments/results/uncertainty/notebook.md, round 1):
+#: the phase head's fusion spread ranks its errors best; the predicted depth's steepness is
+#: every net's
+SCORES = ("spread", "steepness")
+TINY_MM = 1e-6  # a floor under every score: a zero score gives no interval to scale
+
+
+def default_score(phase_head: bool) -> str:
+    """The score a net is calibrated with unless told: the best its output has."""
+    return "spread" if phase_head else "steepness"
+
+
+def pixel_score(out: dict, depth_mm: torch.Tensor, kind: str) -> torch.Tensor:
+    """The uncertainty score (B x 1 x H x W, mm) of a net's output: ``spread``, the blend's
+    weighted spread of its candidates (each view's triangulated depth and the regressed one)
+    around the fused depth (phase head); ``steepness``, the 3 x 3 maximum of the predicted
+    depth's gradient (mm per pixel: where depth jumps, a net errs)."""
+    if kind == "spread":
+        if "weights" not in out:
+            raise ValueError("uncertainty score spread: the net has no phase head (use steepness)")
+        candidates = torch.cat([out["view_depth_mm"], out["regressed_mm"]], 1).float()
+        gap = torch.nan_to_num(candidates) - depth_mm
+        score = (out["weights"].float() * gap**2).sum(1, keepdim=True).sqrt()
+    elif kind == "steepness":
+        gy, gx = torch.gradient(depth_mm.float(), dim=(-2, -1))
+        score = F.max_pool2d(torch.hypot(gx, gy), 3, stride=1, padding=1)
+    else:
+        raise ValueError(f"uncertainty score {kind!r} unknown; choose {' or '.join(SCORES)}")
+    return score.clamp_min(TINY_MM)
 
 
 def _flat(*arrays) -> list[np.ndarray]:

@@ -1,0 +1,100 @@
+"""Calibrate a trained net's error bars and judge them:
+``python -m odmv.study uncertainty RUN [RUN ...] [--score spread|steepness]``.
+
+For each run folder (its best checkpoint): the score of every valid pixel of the validation
+split (odmv.training.uncertainty: the phase head's fusion spread, else the predicted depth's
+steepness) against its true error gives the split conformal factor at each coverage of
+COVERAGES and the score below which the validation split kept 90 % of its pixels (``trusted``);
+the test split then says how they hold: coverage and mean half width (mm) at each coverage,
+the sparsification curve and AUSE, the MAE of the trusted pixels and their share. All of it is
+written to ``RUN/uncertainty.json``, which predict reads beside the checkpoint (an interval per
+pixel, ``uncertainty.exr``, and the trusted mask).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from odmv.io.atomic import write_json
+from odmv.io.runfolder import METRICS, UNCERTAINTY, portable
+from odmv.study.records import checkpoint_data
+from odmv.training.checkpoint import checkpoint_path
+from odmv.training.uncertainty import (
+    COVERAGES,
+    SCORES,
+    ause_mm,
+    conformal_scale,
+    covered,
+    default_score,
+    pixel_score,
+    sparsification,
+)
+
+KEEP = 0.9  # the share of the validation pixels the trusted mask keeps
+
+
+def split_errors(module, loader, kind: str) -> tuple[np.ndarray, np.ndarray]:
+    """|error| (mm) and score of every valid pixel of ``loader``'s scenes."""
+    errors, scores = [], []
+    with torch.no_grad():
+        for batch in loader:
+            out = module.run(batch)
+            depth = module.depth_mm(out)
+            valid = (batch["valid"] > 0) & torch.isfinite(batch["depth_mm"])
+            errors.append((depth - batch["depth_mm"]).abs()[valid].numpy())
+            scores.append(pixel_score(out, depth, kind)[valid].numpy())
+    return np.concatenate(errors), np.concatenate(scores)
+
+
+def calibrate(module, dm, kind: str) -> dict:
+    """The calibration of the module docstring, on ``dm``'s validation and test splits."""
+    cal_err, cal_score = split_errors(module, dm.val_dataloader(), kind)
+    factors = {c: conformal_scale(cal_err, cal_score, c)[None] for c in COVERAGES}
+    trust = float(np.quantile(cal_score, KEEP))
+    err, score = split_errors(module, dm.test_dataloader(), kind)
+    curve = sparsification(err, score)
+    trusted = score <= trust
+    return {
+        "score": kind,
+        "factor": {str(c): q for c, q in factors.items()},
+        "trusted_score_mm": trust,
+        "calibrated_on": {"split": "val", "pixels": int(cal_err.size)},
+        "test": {
+            "pixels": int(err.size),
+            "mae_mm": float(err.mean()),
+            "coverage": {str(c): covered(err, q * score) for c, q in factors.items()},
+            "half_width_mm": {str(c): float(np.mean(q * score)) for c, q in factors.items()},
+            "trusted_share": float(trusted.mean()),
+            "trusted_mae_mm": float(err[trusted].mean()) if trusted.any() else None,
+            "ause_mm": ause_mm(curve),
+            "sparsification": curve,
+        },
+    }
+
+
+def main(argv: list[str]) -> None:
+    ap = argparse.ArgumentParser(
+        prog="python -m odmv.study uncertainty", description=__doc__.splitlines()[0]
+    )
+    ap.add_argument("runs", nargs="+", type=Path, help="run folders (their best checkpoint)")
+    ap.add_argument("--score", choices=SCORES, help="default: the best the net's output has")
+    args = ap.parse_args(argv)
+    for run in args.runs:
+        if not (run / METRICS).is_file():
+            raise ValueError(f"{run}: not a finished run (no {METRICS})")
+        ckpt = checkpoint_path(run)
+        module, dm = checkpoint_data(ckpt, None)
+        record = calibrate(module, dm, args.score or default_score(module.phase_head))
+        record["checkpoint"] = portable(ckpt, run)
+        write_json(run / UNCERTAINTY, record)
+        t = record["test"]
+        print(
+            f"{run}: {record['score']}; at 0.9 the test split is covered on "
+            f"{t['coverage']['0.9']:.3f} of its pixels (half width {t['half_width_mm']['0.9']:.3f}"
+            f" mm); trusted {t['trusted_share']:.1%} at MAE {t['trusted_mae_mm']:.4f} mm of "
+            f"{t['mae_mm']:.4f}; AUSE {t['ause_mm']:.4f} -> {run / UNCERTAINTY}"
+        )
