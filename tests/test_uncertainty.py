@@ -135,6 +135,21 @@ def test_a_calibrated_run_predicts_its_error_bars_into_the_depth_and_the_cloud(
     assert len(kept) == (trusted & np.isfinite(depth)).sum()
     with pytest.raises(ValueError, match="coverage=0.7: calibrated at 0.5, 0.8"):
         predicted(tmp_path / "odd", "coverage=0.7")
+    # exported, the graph gives the score and carries the calibration: the same error bars
+    import onnxruntime as ort
+
+    from odmv.deploy.onnx import METADATA_KEY, export_onnx
+
+    onnx, diff = export_onnx(run / bars["checkpoint"], tmp_path / "onnx")
+    session = ort.InferenceSession(str(onnx), providers=["CPUExecutionProvider"])
+    assert [o.name for o in session.get_outputs()] == ["depth_mm", "score_mm"] and diff < 1e-3
+    meta = json.loads(session.get_modelmeta().custom_metadata_map[METADATA_KEY])
+    assert meta["error_bars"]["factor"] == bars["factor"]
+    run_onnx = compose_config(
+        "predict", [f"ckpt_path={onnx}", f"input={scene}", f"out={tmp_path / 'o'}", "colour=false"]
+    )
+    by_graph = read_channel(predict(run_onnx)[0]["uncertainty"], "Z")
+    np.testing.assert_allclose(by_graph, half, rtol=0.05)  # a 1e-3 mm depth difference, x q
 
 
 def _ply(path) -> tuple[np.ndarray, list[str]]:

@@ -20,12 +20,10 @@ from odmv.data.normalize import Normalization
 from odmv.data.reference import network_input, reference_mode, reference_phase
 from odmv.data.views import with_availability
 from odmv.deploy.onnx import METADATA_KEY, input_shape
-from odmv.io.runfolder import UNCERTAINTY
 from odmv.models.phase import check_head, reads_maps
 from odmv.rig import Rig
-from odmv.training.configs import run_folder_of
 from odmv.training.module import load_module
-from odmv.training.uncertainty import pixel_score
+from odmv.training.uncertainty import calibration_of, pixel_score
 
 
 @dataclass
@@ -99,19 +97,7 @@ def load_predictor(path: str | Path) -> Predictor:
     on CUDA where available)."""
     if Path(path).suffix == ".onnx":
         return _onnx_predictor(Path(path))
-    return module_predictor(load_module(path).eval(), _error_bars(Path(path)))
-
-
-def _error_bars(ckpt: Path) -> dict | None:
-    """The calibration of the run a checkpoint is the best of (its uncertainty.json), if any."""
-    run = run_folder_of(ckpt)
-    path = run / UNCERTAINTY if run is not None else None
-    if path is None or not path.is_file():
-        return None
-    bars = json.loads(path.read_text())
-    if (run / bars.get("checkpoint", "")).resolve() != ckpt.resolve():
-        return None  # calibrated on another checkpoint of the run
-    return bars
+    return module_predictor(load_module(path).eval(), calibration_of(Path(path)))
 
 
 def module_predictor(module, error_bars: dict | None = None) -> Predictor:
@@ -171,4 +157,5 @@ def _onnx_predictor(path: Path) -> Predictor:
         Normalization(**meta["norm"]),
         meta["input_spec"] | {"head": head},
         run,
+        meta.get("error_bars") if "score_mm" in names else None,
     )

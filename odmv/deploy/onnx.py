@@ -12,7 +12,9 @@ so a re-calibrated rig (or a second rig of the same design) runs the same file: 
 builds the maps from ``calibration=FILE`` as it builds the reference phase. The batch is
 dynamic; H and W are the training size. The metadata entry ``odmv`` (JSON) holds what
 :func:`odmv.deploy.inference.load_predictor` needs to build the input from images: views in order,
-input size, normalization and input settings.
+input size, normalization and input settings. A net whose run was calibrated (odmv.study
+uncertainty) gives a last output, ``score_mm`` (batch x 1 x H x W, its uncertainty score), and
+its calibration is in the metadata (``error_bars``): predict turns the score into intervals.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from odmv.io.atomic import write_atomic
 from odmv.models.blocks import fold_batchnorm
 from odmv.rig import Rig, size_hw
 from odmv.training.module import FPPModule, load_module
+from odmv.training.uncertainty import calibration_of, pixel_score
 
 #: ONNX opset: Conv and ConvTranspose in 3D and 5D linear Resize (trilinear) are all covered.
 OPSET = 18
@@ -42,14 +45,18 @@ class DepthInMM(torch.nn.Module):
     """The net plus its output normalization: inputs (and calibration maps, for the phase
     head) -> depth in mm (float32) (and the fusion's weights)."""
 
-    def __init__(self, module: FPPModule):
+    def __init__(self, module: FPPModule, score: str | None = None):
         super().__init__()
         self.module = module
+        self.score = score  # a calibrated net's uncertainty score, a third output
 
     def forward(self, inputs: torch.Tensor, calibration: torch.Tensor | None = None):
         out = self.module(inputs, calibration)
         depth = self.module.norm.depth_mm(out["depth"].float())
-        return depth if calibration is None else (depth, out["weights"])
+        outputs = [depth] + ([out["weights"]] if calibration is not None else [])
+        if self.score is not None:
+            outputs.append(pixel_score(out, depth, self.score))
+        return outputs[0] if len(outputs) == 1 else tuple(outputs)
 
 
 def input_shape(module: FPPModule) -> tuple[int, int, int]:
@@ -93,7 +100,9 @@ def export_graph(model: torch.nn.Module, example: torch.Tensor, maps: torch.Tens
             model,
             args,
             input_names=names,
-            output_names=["depth_mm"] + (["weights"] if maps is not None else []),
+            output_names=["depth_mm"]
+            + (["weights"] if maps is not None else [])
+            + (["score_mm"] if getattr(model, "score", None) else []),
             dynamic_shapes=shapes,
             opset_version=OPSET,
             dynamo=True,
@@ -129,7 +138,8 @@ def export_onnx(ckpt_path: str | Path, out_dir: str | Path) -> tuple[Path, float
         raise ValueError(
             f"{ckpt_path}: the checkpoint has no normalization or views (not trained?)"
         )
-    wrapper = DepthInMM(module).eval()
+    bars = calibration_of(Path(ckpt_path))  # a calibrated net carries its error bars
+    wrapper = DepthInMM(module, bars["score"] if bars else None).eval()
     example, maps = example_inputs(module)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -137,15 +147,20 @@ def export_onnx(ckpt_path: str | Path, out_dir: str | Path) -> tuple[Path, float
     model = export_graph(wrapper, example, maps)
     entry = model.metadata_props.add()
     meta = metadata(module, ckpt_path) | {"precision": "float32"}
+    if bars:
+        meta["error_bars"] = bars
     entry.key, entry.value = METADATA_KEY, json.dumps(meta)
     write_atomic(path, lambda tmp: onnx.save(model, str(tmp)))
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     feed = {"inputs": example.numpy()}
     with torch.no_grad():
         if maps is None:
-            ref = wrapper(example).numpy()
+            ref = wrapper(example)
         else:
-            ref = wrapper(example, maps)[0].numpy()
+            ref = wrapper(example, maps)
             feed["calibration"] = maps.numpy()
-    got = session.run(None, feed)[0]
-    return path, float(np.abs(got - ref).max())
+    ref = [ref] if torch.is_tensor(ref) else list(ref)
+    got = session.run(None, feed)
+    # depth and, where the graph gives it, the score (mm both); the weights are shares
+    checked = [0] + ([len(got) - 1] if bars else [])
+    return path, max(float(np.abs(got[k] - ref[k].numpy()).max()) for k in checked)

@@ -18,11 +18,16 @@ between them (0: the score ranks errors perfectly; a random ranking leaves the M
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+
+from odmv.io.runfolder import UNCERTAINTY
+from odmv.training.configs import run_folder_of
 
 #: shares of the pixels kept at which the sparsification curve is read (the last: all of them)
 KEPT_SHARES = tuple(np.round(np.arange(0.05, 1.0001, 0.05), 2))
@@ -33,6 +38,17 @@ COVERAGES = (0.5, 0.8, 0.9, 0.95, 0.99)
 #: every net's
 SCORES = ("spread", "steepness")
 TINY_MM = 1e-6  # a floor under every score: a zero score gives no interval to scale
+
+
+def calibration_of(ckpt: Path) -> dict | None:
+    """The error bars' calibration of the run a checkpoint is the best of (its
+    ``uncertainty.json``, odmv.study.uncertainty), if it has one for this very checkpoint."""
+    run = run_folder_of(ckpt)
+    path = run / UNCERTAINTY if run is not None else None
+    if path is None or not path.is_file():
+        return None
+    bars = json.loads(path.read_text())
+    return bars if (run / bars.get("checkpoint", "")).resolve() == Path(ckpt).resolve() else None
 
 
 def default_score(phase_head: bool) -> str:
@@ -51,9 +67,11 @@ def pixel_score(out: dict, depth_mm: torch.Tensor, kind: str) -> torch.Tensor:
         candidates = torch.cat([out["view_depth_mm"], out["regressed_mm"]], 1).float()
         gap = torch.nan_to_num(candidates) - depth_mm
         score = (out["weights"].float() * gap**2).sum(1, keepdim=True).sqrt()
-    elif kind == "steepness":
-        gy, gx = torch.gradient(depth_mm.float(), dim=(-2, -1))
-        score = F.max_pool2d(torch.hypot(gx, gy), 3, stride=1, padding=1)
+    elif kind == "steepness":  # central differences, the border replicated (ONNX exports it)
+        d = F.pad(depth_mm.float(), (1, 1, 1, 1), mode="replicate")
+        gx = (d[..., 1:-1, 2:] - d[..., 1:-1, :-2]) / 2
+        gy = (d[..., 2:, 1:-1] - d[..., :-2, 1:-1]) / 2
+        score = F.max_pool2d(torch.sqrt(gx**2 + gy**2), 3, stride=1, padding=1)
     else:
         raise ValueError(f"uncertainty score {kind!r} unknown; choose {' or '.join(SCORES)}")
     return score.clamp_min(TINY_MM)
