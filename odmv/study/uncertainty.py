@@ -6,7 +6,9 @@ split (odmv.training.uncertainty: the phase head's fusion spread, else the predi
 steepness) against its true error gives the split conformal factor at each coverage of
 COVERAGES and the score below which the validation split kept 90 % of its pixels (``trusted``);
 the test split then says how they hold: coverage and mean half width (mm) at each coverage,
-the sparsification curve and AUSE, the MAE of the trusted pixels and their share. All of it is
+the sparsification curve and AUSE, the MAE of the trusted pixels and their share (with
+``--heldout``, on the run's held-out set too: 200 scenes of its twin, rendered on first use,
+as ``odmv.study heldout`` renders them). All of it is
 written to ``RUN/uncertainty.json``, which predict reads beside the checkpoint (an interval per
 pixel, ``uncertainty.exr``, and the trusted mask).
 """
@@ -14,15 +16,18 @@ pixel, ``uncertainty.exr``, and the trusted mask).
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from odmv.io.atomic import write_json
-from odmv.io.runfolder import METRICS, UNCERTAINTY, portable
+from odmv.io.runfolder import METRICS, UNCERTAINTY, portable, recorded_dataset
+from odmv.study.heldout import heldout_dataset
 from odmv.study.records import checkpoint_data
 from odmv.training.checkpoint import checkpoint_path
+from odmv.training.evaluation import checkpoint_datamodule
 from odmv.training.uncertainty import (
     COVERAGES,
     SCORES,
@@ -50,29 +55,38 @@ def split_errors(module, loader, kind: str) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(errors), np.concatenate(scores)
 
 
-def calibrate(module, dm, kind: str) -> dict:
-    """The calibration of the module docstring, on ``dm``'s validation and test splits."""
+def calibrate(module, dm, kind: str, heldout=None) -> dict:
+    """The calibration of the module docstring on ``dm``'s validation split, judged on its
+    test split (and on the test split of ``heldout``, a data module of the held-out set)."""
     cal_err, cal_score = split_errors(module, dm.val_dataloader(), kind)
     factors = {c: conformal_scale(cal_err, cal_score, c)[None] for c in COVERAGES}
     trust = float(np.quantile(cal_score, KEEP))
-    err, score = split_errors(module, dm.test_dataloader(), kind)
-    curve = sparsification(err, score)
-    trusted = score <= trust
-    return {
+    record = {
         "score": kind,
         "factor": {str(c): q for c, q in factors.items()},
         "trusted_score_mm": trust,
         "calibrated_on": {"split": "val", "pixels": int(cal_err.size)},
-        "test": {
-            "pixels": int(err.size),
-            "mae_mm": float(err.mean()),
-            "coverage": {str(c): covered(err, q * score) for c, q in factors.items()},
-            "half_width_mm": {str(c): float(np.mean(q * score)) for c, q in factors.items()},
-            "trusted_share": float(trusted.mean()),
-            "trusted_mae_mm": float(err[trusted].mean()) if trusted.any() else None,
-            "ause_mm": ause_mm(curve),
-            "sparsification": curve,
-        },
+    }
+    for name, data in (("test", dm), ("heldout", heldout)):
+        if data is not None:
+            err, score = split_errors(module, data.test_dataloader(), kind)
+            record[name] = judged(err, score, factors, trust)
+    return record
+
+
+def judged(err: np.ndarray, score: np.ndarray, factors: dict, trust: float) -> dict:
+    """How a calibration holds on pixels it was not made on."""
+    curve = sparsification(err, score)
+    trusted = score <= trust
+    return {
+        "pixels": int(err.size),
+        "mae_mm": float(err.mean()),
+        "coverage": {str(c): covered(err, q * score) for c, q in factors.items()},
+        "half_width_mm": {str(c): float(np.mean(q * score)) for c, q in factors.items()},
+        "trusted_share": float(trusted.mean()),
+        "trusted_mae_mm": float(err[trusted].mean()) if trusted.any() else None,
+        "ause_mm": ause_mm(curve),
+        "sparsification": curve,
     }
 
 
@@ -82,13 +96,18 @@ def main(argv: list[str]) -> None:
     )
     ap.add_argument("runs", nargs="+", type=Path, help="run folders (their best checkpoint)")
     ap.add_argument("--score", choices=SCORES, help="default: the best the net's output has")
+    ap.add_argument("--heldout", action="store_true", help="judge it on the run's held-out set too")
     args = ap.parse_args(argv)
     for run in args.runs:
         if not (run / METRICS).is_file():
             raise ValueError(f"{run}: not a finished run (no {METRICS})")
         ckpt = checkpoint_path(run)
         module, dm = checkpoint_data(ckpt, None)
-        record = calibrate(module, dm, args.score or default_score(module.phase_head))
+        held = None
+        if args.heldout:  # rendered on first use, as odmv.study heldout renders it
+            root = heldout_dataset(recorded_dataset(json.loads((run / METRICS).read_text()), run))
+            held = checkpoint_datamodule(module, "test", root=str(root))
+        record = calibrate(module, dm, args.score or default_score(module.phase_head), held)
         record["checkpoint"] = portable(ckpt, run)
         write_json(run / UNCERTAINTY, record)
         t = record["test"]
@@ -98,3 +117,10 @@ def main(argv: list[str]) -> None:
             f" mm); trusted {t['trusted_share']:.1%} at MAE {t['trusted_mae_mm']:.4f} mm of "
             f"{t['mae_mm']:.4f}; AUSE {t['ause_mm']:.4f} -> {run / UNCERTAINTY}"
         )
+        if held is not None:
+            h = record["heldout"]
+            print(
+                f"  held-out set: covered on {h['coverage']['0.9']:.3f} at 0.9 (half width "
+                f"{h['half_width_mm']['0.9']:.3f} mm); trusted {h['trusted_share']:.1%} at MAE "
+                f"{h['trusted_mae_mm']:.4f} mm of {h['mae_mm']:.4f}; AUSE {h['ause_mm']:.4f}"
+            )
