@@ -8,7 +8,8 @@ COVERAGES and the score below which the validation split kept 90 % of its pixels
 the test split then says how they hold: coverage and mean half width (mm) at each coverage,
 the sparsification curve and AUSE, the MAE of the trusted pixels and their share (with
 ``--heldout``, on the run's held-out set too: 200 scenes of its twin, rendered on first use,
-as ``odmv.study heldout`` renders them). All of it is
+as ``odmv.study heldout`` renders them; with ``--judge DATASET``, on that dataset's test split,
+e.g. a shifted twin). All of it is
 written to ``RUN/uncertainty.json``, which predict reads beside the checkpoint (an interval per
 pixel, ``uncertainty.exr``, and the trusted mask).
 """
@@ -55,9 +56,9 @@ def split_errors(module, loader, kind: str) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(errors), np.concatenate(scores)
 
 
-def calibrate(module, dm, kind: str, heldout=None) -> dict:
+def calibrate(module, dm, kind: str, judges: dict | None = None) -> dict:
     """The calibration of the module docstring on ``dm``'s validation split, judged on its
-    test split (and on the test split of ``heldout``, a data module of the held-out set)."""
+    test split and on the test split of each of ``judges`` (name -> data module)."""
     cal_err, cal_score = split_errors(module, dm.val_dataloader(), kind)
     factors = {c: conformal_scale(cal_err, cal_score, c)[None] for c in COVERAGES}
     trust = float(np.quantile(cal_score, KEEP))
@@ -67,10 +68,9 @@ def calibrate(module, dm, kind: str, heldout=None) -> dict:
         "trusted_score_mm": trust,
         "calibrated_on": {"split": "val", "pixels": int(cal_err.size)},
     }
-    for name, data in (("test", dm), ("heldout", heldout)):
-        if data is not None:
-            err, score = split_errors(module, data.test_dataloader(), kind)
-            record[name] = judged(err, score, factors, trust)
+    for name, data in {"test": dm, **(judges or {})}.items():
+        err, score = split_errors(module, data.test_dataloader(), kind)
+        record[name] = judged(err, score, factors, trust)
     return record
 
 
@@ -97,30 +97,30 @@ def main(argv: list[str]) -> None:
     ap.add_argument("runs", nargs="+", type=Path, help="run folders (their best checkpoint)")
     ap.add_argument("--score", choices=SCORES, help="default: the best the net's output has")
     ap.add_argument("--heldout", action="store_true", help="judge it on the run's held-out set too")
+    ap.add_argument(
+        "--judge", type=Path, action="append", default=[], help="and on this dataset's test split"
+    )
     args = ap.parse_args(argv)
     for run in args.runs:
         if not (run / METRICS).is_file():
             raise ValueError(f"{run}: not a finished run (no {METRICS})")
         ckpt = checkpoint_path(run)
         module, dm = checkpoint_data(ckpt, None)
-        held = None
+        judges = {}
         if args.heldout:  # rendered on first use, as odmv.study heldout renders it
             root = heldout_dataset(recorded_dataset(json.loads((run / METRICS).read_text()), run))
-            held = checkpoint_datamodule(module, "test", root=str(root))
-        record = calibrate(module, dm, args.score or default_score(module.phase_head), held)
+            judges["heldout"] = checkpoint_datamodule(module, "test", root=str(root))
+        for root in args.judge:  # e.g. a shifted twin of odmv.study robustness
+            judges[portable(root)] = checkpoint_datamodule(module, "test", root=str(root))
+        record = calibrate(module, dm, args.score or default_score(module.phase_head), judges)
         record["checkpoint"] = portable(ckpt, run)
         write_json(run / UNCERTAINTY, record)
-        t = record["test"]
-        print(
-            f"{run}: {record['score']}; at 0.9 the test split is covered on "
-            f"{t['coverage']['0.9']:.3f} of its pixels (half width {t['half_width_mm']['0.9']:.3f}"
-            f" mm); trusted {t['trusted_share']:.1%} at MAE {t['trusted_mae_mm']:.4f} mm of "
-            f"{t['mae_mm']:.4f}; AUSE {t['ause_mm']:.4f} -> {run / UNCERTAINTY}"
-        )
-        if held is not None:
-            h = record["heldout"]
+        for name in ("test", *judges):
+            t = record[name]
             print(
-                f"  held-out set: covered on {h['coverage']['0.9']:.3f} at 0.9 (half width "
-                f"{h['half_width_mm']['0.9']:.3f} mm); trusted {h['trusted_share']:.1%} at MAE "
-                f"{h['trusted_mae_mm']:.4f} mm of {h['mae_mm']:.4f}; AUSE {h['ause_mm']:.4f}"
+                f"{run} on {name}: {record['score']}; covered on {t['coverage']['0.9']:.3f} at "
+                f"0.9 (half width {t['half_width_mm']['0.9']:.3f} mm); trusted "
+                f"{t['trusted_share']:.1%} at MAE {t['trusted_mae_mm']:.4f} mm of "
+                f"{t['mae_mm']:.4f}; AUSE {t['ause_mm']:.4f}"
             )
+        print(f"  -> {run / UNCERTAINTY}")
