@@ -158,3 +158,26 @@ def _ply(path) -> tuple[np.ndarray, list[str]]:
     head, _, body = data.partition(b"end_header\n")
     names = [line.split()[-1] for line in head.decode().splitlines() if line.startswith("property")]
     return np.frombuffer(body, "<f4").reshape(-1, len(names)), names
+
+
+def test_a_capture_whose_fringes_lost_contrast_lies_outside_its_calibration():
+    """Michelson contrast within a period: unchanged by the surface's albedo, lowered by blur;
+    beyond three of the calibration scenes' standard deviations a scene is flagged."""
+    import torch
+
+    from odmv.training.uncertainty import fringe_contrast, outside_calibration
+
+    x = torch.arange(64.0)
+    fringe = 0.5 + 0.4 * torch.cos(2 * torch.pi * x / 8)  # contrast 0.8 on every row
+    sharp = fringe.expand(1, 2, 64, 64)
+    dark = 0.3 * sharp  # a darker surface, the same fringes
+    blurred = 0.5 + 0.4 * 0.5 * torch.cos(2 * torch.pi * x / 8).expand(1, 2, 64, 64)
+    c = fringe_contrast(torch.cat([sharp, dark, blurred]), 9).tolist()
+    assert c[0] == pytest.approx(0.8, abs=0.01) and c[1] == pytest.approx(c[0], abs=1e-4)
+    assert c[2] == pytest.approx(0.4, abs=0.01)
+    bars = {"contrast": {"mean": 0.8, "std": 0.02, "window_px": 9}}
+    assert outside_calibration(c[0], bars) is None
+    assert "fringe contrast 0.400 against the calibration scenes' 0.800" in outside_calibration(
+        c[2], bars
+    )
+    assert outside_calibration(0.4, {"contrast": None}) is None  # too few scenes to tell

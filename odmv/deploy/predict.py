@@ -42,6 +42,7 @@ from odmv.io.manifest import (
 )
 from odmv.io.pointcloud import point_cloud, write_ply
 from odmv.rig import VIEW_NAMES, Camera, Rig
+from odmv.training.uncertainty import fringe_contrast, outside_calibration
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -259,6 +260,7 @@ class ErrorBar(NamedTuple):
 
     half_width_mm: np.ndarray
     trusted: np.ndarray
+    outside: str | None = None  # why the capture lies outside what it was calibrated on
 
 
 class Reconstruction(NamedTuple):
@@ -293,7 +295,13 @@ def _by_net(scene: Scene, predictor, reader, default_rig, cfg, out: Path) -> Rec
     if "score_mm" in result:
         score = result["score_mm"][0, 0]
         trusted = score <= predictor.error_bars["trusted_score_mm"]
-        bar = ErrorBar(predictor.half_width_mm(score, float(cfg.coverage)), trusted)
+        bars = predictor.error_bars
+        window = (bars.get("contrast") or {}).get("window_px", 5)  # (no record: no check)
+        contrast = fringe_contrast(torch.from_numpy(images[None]), window)[0]
+        outside = outside_calibration(float(contrast), bars)
+        if outside:
+            print(f"{scene.name}: {outside}", flush=True)
+        bar = ErrorBar(predictor.half_width_mm(score, float(cfg.coverage)), trusted, outside)
     return Reconstruction(
         depth, rig, images, predictor.input_spec.get("period_px"), predictor.views, (), bar
     )
@@ -401,6 +409,8 @@ def write_outputs(
     if error_bar is not None:
         bars = {"unit": "mm", "odmv_coverage": str(cfg.coverage)}
         bars["odmv_quantity"] = "interval half width of the depth"
+        if error_bar.outside:
+            bars["odmv_outside_calibration"] = error_bar.outside
         written["uncertainty"] = write_exr(
             out / "uncertainty.exr", {"Z": error_bar.half_width_mm}, attributes=bars
         )

@@ -51,6 +51,47 @@ def calibration_of(ckpt: Path) -> dict | None:
     return bars if (run / bars.get("checkpoint", "")).resolve() == Path(ckpt).resolve() else None
 
 
+#: a scene's fringes are outside its calibration beyond this many standard deviations of the
+#: calibration scenes' contrast (defocus 1.5 px: every scene; the nominal twin: none; notebook
+#: round 5)
+CONTRAST_Z = 3.0
+LIT = 0.1  # a pixel whose brightest value within a window exceeds this (full scale) is lit
+
+
+def fringe_contrast(images: torch.Tensor, window_px: int) -> torch.Tensor:
+    """Each scene's fringe contrast (B,): the median over its lit pixels, in every view, of the
+    Michelson contrast (max - min) / (max + min) within ``window_px`` (a fringe period in the
+    camera) of linear-intensity images (B x S x H x W). It falls under defocus and blur, whatever
+    the surface's albedo, where the net's error bars stop holding."""
+    k = max(3, window_px | 1)
+    hi = F.max_pool2d(images.float(), k, 1, k // 2)
+    lo = -F.max_pool2d(-images.float(), k, 1, k // 2)
+    contrast = (hi - lo) / (hi + lo).clamp_min(1e-3)
+    lit = hi > LIT
+    return torch.stack(
+        [
+            c[m].median() if m.any() else c.new_tensor(math.nan)
+            for c, m in zip(contrast, lit, strict=True)
+        ]
+    )
+
+
+def outside_calibration(contrast: float, bars: dict) -> str | None:
+    """Why a scene's fringes lie outside what the error bars were calibrated on (its contrast
+    against the calibration scenes'), or None."""
+    ref = bars.get("contrast")
+    if ref is None or not math.isfinite(contrast):
+        return None
+    z = (contrast - ref["mean"]) / max(ref["std"], 1e-6)
+    if abs(z) <= CONTRAST_Z:
+        return None
+    return (
+        f"fringe contrast {contrast:.3f} against the calibration scenes' {ref['mean']:.3f} ± "
+        f"{ref['std']:.3f} ({z:+.1f} sigma): its error bars may not hold (defocus, blur or "
+        "another exposure than the calibration's)"
+    )
+
+
 def default_score(phase_head: bool) -> str:
     """The score a net is calibrated with unless told: the best its output has."""
     return "spread" if phase_head else "steepness"
