@@ -40,12 +40,16 @@ class Predictor:
     run: Callable[[torch.Tensor, torch.Tensor | None], dict]
     error_bars: dict | None = None  # its run's uncertainty.json (odmv.study.uncertainty)
 
-    def half_width_mm(self, score: np.ndarray, coverage: float) -> np.ndarray:
-        """Each pixel's interval half width (mm) at ``coverage`` from its score."""
+    def factor(self, coverage: float) -> float:
+        """The calibrated factor q at ``coverage`` (the interval is depth ± q x score)."""
         factors = self.error_bars["factor"]
         if str(coverage) not in factors:
             raise ValueError(f"coverage={coverage}: calibrated at {', '.join(factors)} only")
-        return (factors[str(coverage)] * score).astype(np.float32)
+        return factors[str(coverage)]
+
+    def half_width_mm(self, score: np.ndarray, coverage: float) -> np.ndarray:
+        """Each pixel's interval half width (mm) at ``coverage`` from its score."""
+        return (self.factor(coverage) * score).astype(np.float32)
 
     def calibration(self, rig: Rig) -> torch.Tensor | None:
         """The triangulation maps (1 x S x 6 x H x W) a net whose head reads them needs

@@ -42,7 +42,7 @@ from odmv.io.manifest import (
 )
 from odmv.io.pointcloud import point_cloud, write_ply
 from odmv.rig import VIEW_NAMES, Camera, Rig
-from odmv.training.uncertainty import fringe_contrast, outside_calibration
+from odmv.training.uncertainty import capture_outside, period_window_px
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -112,7 +112,7 @@ def expected_images(predictor) -> str:
 def lit_by_any_view(images: np.ndarray, period_camera_px: float, threshold: float) -> np.ndarray:
     """Pixels some projector lights: the brightest value within one fringe period (so a dark
     fringe of a lit surface counts as lit) above ``threshold`` (full-scale units) in a view."""
-    k = 2 * int(np.ceil(period_camera_px / 2)) + 1
+    k = period_window_px(period_camera_px)
     t = torch.from_numpy(np.ascontiguousarray(images, np.float32))[None]
     peak = torch.nn.functional.max_pool2d(t, k, stride=1, padding=k // 2)[0].numpy()
     return (peak > threshold).any(0)
@@ -160,7 +160,7 @@ def predict(cfg: DictConfig) -> list[dict[str, Path]]:
             "uncertainty RUN writes them beside its checkpoint)"
         )
     if predictor is not None and predictor.error_bars is not None:
-        predictor.half_width_mm(np.zeros(1), float(cfg.coverage))  # a coverage it holds
+        predictor.factor(float(cfg.coverage))  # refused before anything is written
     views = predictor.views if predictor else list(VIEW_NAMES)
     unknown = [v for v in cfg.get("views") or [] if v not in views]
     if unknown:  # before anything is written
@@ -295,10 +295,7 @@ def _by_net(scene: Scene, predictor, reader, default_rig, cfg, out: Path) -> Rec
     if "score_mm" in result:
         score = result["score_mm"][0, 0]
         trusted = score <= predictor.error_bars["trusted_score_mm"]
-        bars = predictor.error_bars
-        window = (bars.get("contrast") or {}).get("window_px", 5)  # (no record: no check)
-        contrast = fringe_contrast(torch.from_numpy(images[None]), window)[0]
-        outside = outside_calibration(float(contrast), bars)
+        outside = capture_outside(images, predictor.error_bars)
         if outside:
             print(f"{scene.name}: {outside}", flush=True)
         bar = ErrorBar(predictor.half_width_mm(score, float(cfg.coverage)), trusted, outside)

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import fnmatch
 import hashlib
-import importlib
 import inspect
 import itertools
 import json
@@ -133,11 +132,9 @@ def sweep_overrides(protocol: str, table: str, extra: list[str]) -> list[list[st
     return [list(combo) for combo in itertools.product(*axes)]
 
 
-def net_defaults(target: str) -> dict:
-    """The keyword defaults of the net class ``target`` names: a setting at its class's
-    default builds the net as before the setting existed (one place for a net's defaults)."""
-    module, _, name = target.rpartition(".")
-    cls = getattr(importlib.import_module(module), name)
+def net_defaults(cls: type) -> dict:
+    """The keyword defaults of net class ``cls``: a setting at its class's default builds the
+    net as before the setting existed (one place for a net's defaults)."""
     return {
         k: list(p.default) if isinstance(p.default, tuple) else p.default
         for k, p in inspect.signature(cls).parameters.items()
@@ -169,9 +166,9 @@ def _run_key(cfg: DictConfig) -> str:
         d.pop(per_net, None)
     for about in ("table2", "published_parameters", "display"):  # the registry's words on it
         d["model"].pop(about, None)
-    net = hydra.utils.get_class(d["model"]["net"]["_target_"])
+    net_class = hydra.utils.get_class(d["model"]["net"]["_target_"])
     # a loss setting the net has no output for is never read
-    terms = set(net.LOSS_TERMS) | (set(PHASE_TERMS) if d.get("head") == "phase" else set())
+    terms = set(net_class.LOSS_TERMS) | (set(PHASE_TERMS) if d.get("head") == "phase" else set())
     for term in (*OPTIONAL_TERMS, *PHASE_TERMS):
         if term not in terms:
             d["loss"].pop(term, None)
@@ -193,7 +190,7 @@ def _run_key(cfg: DictConfig) -> str:
     if not d.get("distill_from"):  # no teacher: its weights are never read
         d.pop("distill", None)
     net = d["model"]["net"]
-    for key, default in net_defaults(net["_target_"]).items():  # as before the setting was
+    for key, default in net_defaults(net_class).items():  # as before the setting was
         if key in net and net[key] == default:
             net.pop(key)
     if d["data"].get("labels") is True:  # the ground truth read, as before it could be not

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +41,7 @@ from odmv.training.uncertainty import (
     default_score,
     fringe_contrast,
     outside_calibration,
+    period_window_px,
     pixel_score,
     sparsification,
 )
@@ -73,7 +73,7 @@ def contrast_window(module, dm) -> int:
         return 5
     cam = rig.camera_at(dm.spec.width_px, dm.spec.height_px)
     proj = rig.projectors()[module.hparams.views[0]]
-    return 2 * math.ceil(period_in_camera_px(spec["period_px"], cam, proj) / 2) + 1
+    return period_window_px(period_in_camera_px(spec["period_px"], cam, proj))
 
 
 def calibrate(module, dm, kind: str, judges: dict | None = None) -> dict:

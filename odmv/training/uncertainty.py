@@ -58,6 +58,12 @@ CONTRAST_Z = 3.0
 LIT = 0.1  # a pixel whose brightest value within a window exceeds this (full scale) is lit
 
 
+def period_window_px(period_camera_px: float) -> int:
+    """The odd window (px) that spans one fringe period in the camera: within it a lit pixel
+    sees a bright fringe and its contrast is the fringe's."""
+    return 2 * math.ceil(period_camera_px / 2) + 1
+
+
 def fringe_contrast(images: torch.Tensor, window_px: int) -> torch.Tensor:
     """Each scene's fringe contrast (B,): the median over its lit pixels, in every view, of the
     Michelson contrast (max - min) / (max + min) within ``window_px`` (a fringe period in the
@@ -90,6 +96,16 @@ def outside_calibration(contrast: float, bars: dict) -> str | None:
         f"{ref['std']:.3f} ({z:+.1f} sigma): its error bars may not hold (defocus, blur or "
         "another exposure than the calibration's)"
     )
+
+
+def capture_outside(images: np.ndarray, bars: dict) -> str | None:
+    """:func:`outside_calibration` of one capture's linear-intensity images (S x H x W); None
+    where the calibration recorded no contrast (too few scenes to tell its spread)."""
+    ref = bars.get("contrast")
+    if ref is None:
+        return None
+    batch = torch.from_numpy(np.asarray(images, np.float32)[None])
+    return outside_calibration(float(fringe_contrast(batch, ref["window_px"])[0]), bars)
 
 
 def default_score(phase_head: bool) -> str:
